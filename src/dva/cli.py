@@ -1,0 +1,93 @@
+"""The ``dva`` command line: ``dva tasks``, ``dva render`` (more subcommands as they land)."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from dva.tasks import TASKS
+
+
+@dataclasses.dataclass
+class TasksCommand:
+    """List the tasks with observation/action sizes and episode lengths."""
+
+    def run(self) -> None:
+        from dva.tasks import make_task
+
+        print(f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'substeps':>10}  pixel camera")
+        for name in TASKS:
+            task = make_task(name)
+            print(f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{task.substeps:>10}  {task.camera}")
+
+
+@dataclasses.dataclass
+class RenderCommand:
+    """Write a PNG grid of the pixel observations and an mp4 of a random-action rollout."""
+
+    task: str = "cartpole_swingup"
+    num_envs: int = 16
+    out: Path = Path("renders")
+    image_size: int = 84
+    """Side of the pixel observations (the PNG grid)."""
+    video_size: int = 256
+    """Side of each env's view in the video (larger than the observations)."""
+    video_envs: int = 4
+    steps: int = 120
+    """Random-action steps in the video (60 per second of simulated time)."""
+    seed: int = 0
+
+    def run(self) -> None:
+        import jax
+        import numpy as np
+
+        from dva.rendering import PixelRenderer
+        from dva.tasks import make_task
+        from dva.visualize import image_grid, random_rollout, render_trajectory, save_png, write_video
+
+        task = make_task(self.task)
+        observations = PixelRenderer(task, self.num_envs, self.image_size)
+        _, qpos = random_rollout(task, jax.random.PRNGKey(self.seed), self.num_envs, self.steps)
+        grid_path = self.out / f"{self.task}_observations.png"
+        save_png(grid_path, image_grid(np.asarray(jax.jit(observations.__call__)(qpos[self.steps // 2]))))
+        video_envs = min(self.video_envs, self.num_envs)
+        big = PixelRenderer(task, video_envs, self.video_size, samples_per_pixel=2)
+        frames = render_trajectory(big, qpos[:, :video_envs], columns=int(np.ceil(np.sqrt(video_envs))))
+        video_path = self.out / f"{self.task}_random.mp4"
+        write_video(video_path, frames)
+        print(f"wrote {grid_path} and {video_path}")
+
+
+def _task_check(name: str) -> None:
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
+
+
+COMMANDS = {
+    "tasks": TasksCommand,
+    "render": RenderCommand,
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``dva`` console script."""
+    command = tyro.extras.subcommand_cli_from_dict(
+        {name: Annotated[cls, tyro.conf.arg(name=name)] for name, cls in COMMANDS.items()},
+        args=argv,
+        prog="dva",
+    )
+    try:
+        if hasattr(command, "task"):
+            _task_check(command.task)
+        command.run()
+    except ValueError as error:  # bad input: one line naming the value and the choices
+        print(f"dva: error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

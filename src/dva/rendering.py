@@ -1,0 +1,110 @@
+"""Pixel observations: MuJoCo's batched Warp ray-tracer inside ``jax.jit``, and frame stacking.
+
+Physics runs on MJX's JAX implementation (differentiable); the Warp renderer needs a Warp-backed
+``mjx.Data``. :class:`PixelRenderer` bridges the two: it runs forward kinematics for the camera and
+geom poses in JAX, writes them into a Warp ``Data`` template, refits the ray-tracer's BVH and
+renders. Rendering is not differentiable, so its input passes through ``jax.lax.stop_gradient``
+— exactly D.Va's decoupling of the observation from the physics graph.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from mujoco import mjx
+
+from dva.tasks import Task
+
+DEFAULT_IMAGE_SIZE = 84
+MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 1024
+
+
+class PixelRenderer:
+    """Renders ``num_envs`` copies of a task from its pixel camera as uint8 RGB (and depth).
+
+    The Warp render context has a fixed batch size, so one renderer serves one ``num_envs``.
+    Keep the renderer object alive while jitted functions that call it are in use.
+    """
+
+    def __init__(
+        self,
+        task: Task,
+        num_envs: int,
+        width: int = DEFAULT_IMAGE_SIZE,
+        height: int | None = None,
+        depth: bool = False,
+        samples_per_pixel: int = 1,
+    ) -> None:
+        height = width if height is None else height
+        for label, value in (("width", width), ("height", height)):
+            if not isinstance(value, int) or not MIN_IMAGE_SIZE <= value <= MAX_IMAGE_SIZE:
+                raise ValueError(
+                    f"image {label} {value!r} is not allowed; use an int in [{MIN_IMAGE_SIZE}, {MAX_IMAGE_SIZE}]"
+                )
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
+        mjm = task.mj_model
+        self._camera = mjm.camera(task.camera).id
+        self._warp_model = mjx.put_model(mjm, impl="warp")
+        self._template = jax.vmap(lambda _: mjx.make_data(mjm, impl="warp"))(jnp.arange(num_envs))
+        # Lights are directional and attached to the world, so the template's light poses stay valid.
+        self._template = jax.jit(jax.vmap(mjx.forward, in_axes=(None, 0)))(self._warp_model, self._template)
+        self._context = mjx.create_render_context(
+            mjm=mjm, nworld=num_envs, cam_res=(width, height), render_rgb=True, render_depth=depth,
+            cam_active=[task.camera], use_textures=True, use_shadows=False,
+            samples_per_pixel=samples_per_pixel, background_color=(0.55, 0.7, 0.85, 1.0),
+        )
+        self._camera_slot = 0  # only the pixel camera is active in the context
+
+    def poses(self, qpos: jax.Array) -> mjx.Data:
+        """Forward kinematics (JAX) of a batch of ``qpos``: geom and camera poses."""
+        model = self.task.model
+        data0 = mjx.make_data(model)
+
+        def one(q: jax.Array) -> mjx.Data:
+            d = mjx.kinematics(model, data0.replace(qpos=q))
+            d = mjx.com_pos(model, d)  # subtree centres of mass, for the tracking cameras
+            return mjx.camlight(model, d)
+
+        return jax.vmap(one)(qpos)
+
+    def __call__(self, qpos: jax.Array) -> jax.Array | tuple[jax.Array, jax.Array]:
+        """Render ``qpos`` of shape ``(num_envs, nq)``.
+
+        Returns uint8 RGB ``(num_envs, height, width, 3)``; with ``depth=True`` also float32
+        depth in metres ``(num_envs, height, width)``.
+        """
+        if qpos.shape != (self.num_envs, self.task.mj_model.nq):
+            raise ValueError(
+                f"qpos has shape {tuple(qpos.shape)}; this renderer needs ({self.num_envs}, {self.task.mj_model.nq})"
+            )
+        poses = self.poses(jax.lax.stop_gradient(qpos))
+        warp_data = self._template.replace(
+            qpos=poses.qpos, geom_xpos=poses.geom_xpos, geom_xmat=poses.geom_xmat,
+            cam_xpos=poses.cam_xpos, cam_xmat=poses.cam_xmat,
+        )
+        context = self._context.pytree()
+        warp_data = mjx.refit_bvh(self._warp_model, warp_data, context)
+        rgb_packed, depth_packed, _ = mjx.render(self._warp_model, warp_data, context)
+        rgb = mjx.get_rgb(context, self._camera_slot, rgb_packed)
+        rgb = jnp.round(rgb * 255.0).astype(jnp.uint8)
+        if not self.depth:
+            return rgb
+        depth = mjx.get_depth(context, self._camera_slot, depth_packed, 1.0)
+        return rgb, depth
+
+
+def reset_frame_stack(frame: jax.Array, num_frames: int) -> jax.Array:
+    """A stack of ``num_frames`` copies of ``frame`` (N, H, W, C) → (N, H, W, C·num_frames)."""
+    return jnp.concatenate([frame] * num_frames, axis=-1)
+
+
+def push_frame(stack: jax.Array, frame: jax.Array, reset: jax.Array) -> jax.Array:
+    """Drop the oldest frame of ``stack`` and append ``frame``; where ``reset`` (N,) is true the
+    stack restarts as ``frame`` tiled (the first frame of a new episode)."""
+    channels = frame.shape[-1]
+    num_frames = stack.shape[-1] // channels
+    shifted = jnp.concatenate([stack[..., channels:], frame], axis=-1)
+    tiled = reset_frame_stack(frame, num_frames)
+    return jnp.where(reset[:, None, None, None], tiled, shifted)

@@ -1,0 +1,88 @@
+"""The planar (2-D, side-view) runners: Hopper and Half-Cheetah.
+
+Both models have a root of two slides and a hinge, so ``qpos = [x, z, pitch, joints…]`` with
+``z = 0`` at the start pose, and ``qvel = [vx, vz, ω, joint velocities…]``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+from mujoco import mjx
+
+from dva.tasks.base import Task, load_asset_spec
+
+
+class PlanarRunner(Task):
+    """Shared state observation and reset noise of the planar robots.
+
+    Observation (SHAC's): ``qpos[1:]`` (height, pitch, joint angles) and ``qvel`` — 11-D for the
+    Hopper, 17-D for the Cheetah. Reset: uniform noise ±``reset_noise`` on every coordinate but x.
+    """
+
+    asset: str
+    reset_noise = 0.05
+
+    def build_spec(self) -> mujoco.MjSpec:
+        return load_asset_spec(self.asset)
+
+    def initial_state(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        pos_key, vel_key = jax.random.split(key)
+        nq, nv = self.mj_model.nq, self.mj_model.nv
+        noise = jax.random.uniform(pos_key, (nq,), minval=-self.reset_noise, maxval=self.reset_noise)
+        qpos = self.qpos0() + noise.at[0].set(0.0)
+        qvel = jax.random.uniform(vel_key, (nv,), minval=-self.reset_noise, maxval=self.reset_noise)
+        return qpos, qvel
+
+    def observation(self, data: mjx.Data, action: jax.Array) -> jax.Array:
+        return jnp.concatenate([data.qpos[1:], data.qvel])
+
+
+class Hopper(PlanarRunner):
+    """One-legged hopper (3 actuated joints).
+
+    Reward follows the authors' code (SHAC's hopper), which produced the paper's results, rather
+    than appendix E's formula: ``R = v_x + R_height + (1 − θ²/(π/6)²) − 0.1‖a‖²`` with
+    ``Δh = clip(z + 0.3, −1, 0.3)``, ``R_height = −200 Δh²`` if ``Δh < 0`` else ``Δh``,
+    θ the torso pitch and z the height relative to the start. Terminates when ``z < −0.45``.
+    """
+
+    name = "hopper"
+    asset = "hopper.xml"
+    termination_height = -0.45
+    height_tolerance = 0.15
+    max_pitch = jnp.pi / 6
+
+    def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:
+        height, pitch, vx = data.qpos[1], data.qpos[2], data.qvel[0]
+        height_reward = soft_height_reward(height - (self.termination_height + self.height_tolerance), 0.3)
+        angle_reward = 1.0 - pitch**2 / self.max_pitch**2
+        return vx + height_reward + angle_reward - 0.1 * jnp.sum(action**2)
+
+    def is_terminated(self, data: mjx.Data) -> jax.Array:
+        return data.qpos[1] < self.termination_height
+
+
+class Cheetah(PlanarRunner):
+    """Half-Cheetah (6 actuated joints): ``R = v_x``, as SHAC's cheetah (its action penalty is 0).
+
+    Never terminates; episodes run 1000 steps.
+    """
+
+    name = "cheetah"
+    asset = "cheetah.xml"
+    contact_solref = (0.05, 1.0)
+
+    def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:
+        return data.qvel[0]
+
+    def is_terminated(self, data: mjx.Data) -> jax.Array:
+        return jnp.zeros((), bool)
+
+
+def soft_height_reward(height_diff: jax.Array, upper: float, scale: float = 1.0) -> jax.Array:
+    """SHAC's height term: ``Δh = clip(height_diff, −1, upper)``; ``−200 Δh²`` below 0, else
+    ``scale · Δh``."""
+    clipped = jnp.clip(height_diff, -1.0, upper)
+    return jnp.where(clipped < 0.0, -200.0 * clipped**2, scale * clipped)
