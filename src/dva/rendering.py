@@ -53,7 +53,7 @@ class PixelRenderer:
         self._context = mjx.create_render_context(
             mjm=mjm, nworld=num_envs, cam_res=(width, height), render_rgb=True, render_depth=depth,
             cam_active=[task.camera], use_textures=True, use_shadows=False,
-            samples_per_pixel=samples_per_pixel, background_color=(0.55, 0.7, 0.85, 1.0),
+            samples_per_pixel=samples_per_pixel, background_color=(0.6, 0.64, 0.7, 1.0),
         )
         self._camera_slot = 0  # only the pixel camera is active in the context
 

@@ -1,0 +1,162 @@
+"""Task API: rewards against hand-computed values, termination, auto-reset, bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dva.tasks import make_task
+
+
+def data_with(task, qpos, qvel):
+    """An unbatched physics state of ``task`` with the given coordinates."""
+    return task._data0.replace(qpos=jnp.asarray(qpos, jnp.float32), qvel=jnp.asarray(qvel, jnp.float32))
+
+
+def test_cartpole_reward_and_termination():
+    task = make_task("cartpole_swingup")
+    data = data_with(task, [0.5, np.pi - 0.2], [0.4, 1.5])
+    expected = 10 - (np.pi - 0.2) ** 2 - 0.1 * 1.5**2 - 0.05 * 0.5**2 - 0.1 * 0.4**2
+    assert float(task.reward(data, jnp.zeros(1))) == pytest.approx(expected, rel=1e-5)
+    # Angles past π wrap: 2π − 0.3 is 0.3 from upright.
+    wrapped = data_with(task, [0.0, 2 * np.pi - 0.3], [0.0, 0.0])
+    assert float(task.reward(wrapped, jnp.zeros(1))) == pytest.approx(10 - 0.3**2, rel=1e-5)
+    assert not bool(task.is_terminated(data))
+    assert bool(task.is_terminated(data_with(task, [-2.5, 0.0], [0.0, 0.0])))
+    obs = task.observation(data, jnp.zeros(1))
+    np.testing.assert_allclose(obs, [0.5, 0.4, np.sin(np.pi - 0.2), np.cos(np.pi - 0.2), 1.5], rtol=1e-5, atol=1e-6)
+
+
+def test_hopper_reward_above_and_below_target_height():
+    task = make_task("hopper")
+    action = jnp.array([0.5, -0.5, 1.0])
+    up = data_with(task, [0.0, -0.1, 0.2, 0.0, 0.0, 0.0], [1.5, 0, 0, 0, 0, 0])
+    # Δh = −0.1 + 0.3 = 0.2 ≥ 0 → +0.2; angle 1 − 0.2²/(π/6)²; action 0.1·(0.25 + 0.25 + 1).
+    expected = 1.5 + 0.2 + (1 - 0.2**2 / (np.pi / 6) ** 2) - 0.15
+    assert float(task.reward(up, action)) == pytest.approx(expected, rel=1e-5)
+    low = data_with(task, [0.0, -0.4, 0.0, 0.0, 0.0, 0.0], [0.0] * 6)
+    # Δh = −0.1 → −200·0.01 = −2; upright → angle term 1.
+    assert float(task.reward(low, jnp.zeros(3))) == pytest.approx(-2.0 + 1.0, rel=1e-5)
+    assert not bool(task.is_terminated(low))
+    assert bool(task.is_terminated(data_with(task, [0.0, -0.46, 0, 0, 0, 0], [0.0] * 6)))
+
+
+def test_cheetah_reward_is_forward_velocity():
+    task = make_task("cheetah")
+    data = data_with(task, task.mj_model.qpos0, [2.5] + [0.3] * 8)
+    assert float(task.reward(data, jnp.ones(6))) == pytest.approx(2.5, rel=1e-6)
+    assert not bool(task.is_terminated(data_with(task, np.full(9, -5.0), np.zeros(9))))
+
+
+def test_ant_reward_with_torso_turned_left():
+    task = make_task("ant")
+    qpos = np.array(task.mj_model.qpos0)
+    qpos[2] = 0.6
+    qpos[3:7] = [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]  # 90° yaw: upright, facing +y
+    qvel = np.zeros(task.mj_model.nv)
+    qvel[0] = 0.7
+    data = data_with(task, qpos, qvel)
+    # v_x + 0.1·up(1) + heading(0) + (0.6 − 0.27)
+    assert float(task.reward(data, jnp.zeros(8))) == pytest.approx(0.7 + 0.1 + 0.0 + 0.33, abs=1e-5)
+    obs = task.observation(data, jnp.full(8, 0.25))
+    assert obs.shape == (37,)
+    np.testing.assert_allclose(obs[-10:-8], [1.0, 0.0], atol=1e-6)  # up, heading projections
+    assert bool(task.is_terminated(data_with(task, np.r_[0, 0, 0.26, qpos[3:]], qvel)))
+
+
+def test_humanoid_reward_code_version():
+    task = make_task("humanoid")
+    qpos = np.array(task.mj_model.qpos0)
+    qpos[2] = 1.0  # Δh = clip(1.0 − 0.84, −1, 0.1) = 0.1 → 10·0.1
+    qvel = np.zeros(task.mj_model.nv)
+    qvel[0] = 1.2
+    action = jnp.full(21, 0.5)
+    expected = 1.2 + 0.1 * 1.0 + 1.0 + 1.0 - 0.002 * 21 * 0.25
+    assert float(task.reward(data_with(task, qpos, qvel), action)) == pytest.approx(expected, rel=1e-5)
+    qpos[2] = 0.8  # Δh = −0.04 → −200·0.0016
+    expected_low = 1.2 + 0.1 + 1.0 - 200 * 0.04**2 - 0.002 * 21 * 0.25
+    assert float(task.reward(data_with(task, qpos, qvel), action)) == pytest.approx(expected_low, rel=1e-4)
+    assert task.observation(data_with(task, qpos, qvel), action).shape == (76,)
+
+
+def test_observation_sizes_match_shac(task):
+    expected = {"cartpole_swingup": (5, 1), "hopper": (11, 3), "cheetah": (17, 6), "ant": (37, 8), "humanoid": (76, 21)}
+    assert (task.obs_dim, task.action_dim) == expected[task.name]
+
+
+def test_reset_noise_and_shapes():
+    task = make_task("cartpole_swingup")
+    state = jax.jit(task.reset, static_argnums=1)(jax.random.PRNGKey(3), 256)
+    angle, velocity = np.asarray(state.data.qpos[:, 1]), np.asarray(state.data.qvel)
+    assert np.all(np.abs(angle - np.pi) <= np.pi / 12 + 1e-6) and np.std(angle) > 0.05
+    assert np.all(np.abs(velocity) <= 0.05 + 1e-6) and np.std(velocity) > 0.01
+    assert state.obs.shape == (256, 5) and state.prev_action.shape == (256, 1)
+    assert not bool(state.done.any())
+
+
+def test_termination_auto_resets_and_keeps_final_observation():
+    task = make_task("cartpole_swingup")
+    state = task.reset(jax.random.PRNGKey(0), 2)
+    data = state.data.replace(qpos=state.data.qpos.at[0, 0].set(2.49), qvel=state.data.qvel.at[0, 0].set(3.0))
+    state = state.replace(data=data)
+    after = jax.jit(task.step)(state, jnp.ones((2, 1)))
+    assert after.terminated.tolist() == [True, False] and not after.truncated.any()
+    assert float(after.final_obs[0, 0]) >= 2.5  # the state the step reached
+    assert abs(float(after.obs[0, 0])) < 1e-6  # a fresh episode: cart at the centre
+    assert float(after.data.qpos[0, 1]) == pytest.approx(np.pi, abs=np.pi / 12 + 1e-6)
+    assert after.step_count.tolist() == [0, 1]
+    np.testing.assert_array_equal(after.prev_action[0], [0.0])
+    np.testing.assert_allclose(after.final_obs[1], after.obs[1])
+
+
+def test_time_limit_truncates_not_terminates():
+    task = make_task("cartpole_swingup")
+    state = task.reset(jax.random.PRNGKey(0), 3)
+    state = state.replace(step_count=jnp.array([task.episode_length - 1, 5, task.episode_length - 1], jnp.int32))
+    after = jax.jit(task.step)(state, jnp.zeros((3, 1)))
+    assert after.truncated.tolist() == [True, False, True]
+    assert not after.terminated.any()
+    assert after.step_count.tolist() == [0, 6, 0]
+    np.testing.assert_allclose(after.final_obs[1], after.obs[1])
+    assert not np.allclose(after.final_obs[0], after.obs[0])
+
+
+def test_actions_are_clipped_to_unit_range():
+    task = make_task("cartpole_swingup")
+    state = task.reset(jax.random.PRNGKey(0), 1)
+    step = jax.jit(task.step)
+    np.testing.assert_allclose(step(state, jnp.full((1, 1), 5.0)).data.qpos, step(state, jnp.ones((1, 1))).data.qpos)
+
+
+def test_bad_input_errors_name_the_value():
+    with pytest.raises(ValueError, match="unknown task 'walker'.*cartpole_swingup"):
+        make_task("walker")
+    task = make_task("cartpole_swingup")
+    state = task.reset(jax.random.PRNGKey(0), 2)
+    with pytest.raises(ValueError, match=r"shape \(2, 3\).*needs \(2, 1\)"):
+        task.step(state, jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match="non-finite"):
+        task.step(state, jnp.array([[0.0], [jnp.nan]]))
+    with pytest.raises(ValueError, match="num_envs"):
+        task.reset(jax.random.PRNGKey(0), 0)
+
+
+def test_random_rollouts_stay_finite_with_finite_gradients(task):
+    """32 steps of random actions on 4 envs: returns and their action gradients are finite."""
+    num_envs, horizon = 4, 32
+    state = task.reset(jax.random.PRNGKey(1), num_envs)
+    actions = jax.random.uniform(jax.random.PRNGKey(2), (horizon, num_envs, task.action_dim), minval=-1, maxval=1)
+
+    def total_reward(actions):
+        def one(state, action):
+            state = task.step(state, action)
+            return state, state.reward
+
+        _, rewards = jax.lax.scan(one, state, actions)
+        return rewards.sum(), rewards
+
+    (total, rewards), grad = jax.jit(jax.value_and_grad(total_reward, has_aux=True))(actions)
+    assert np.isfinite(float(total)) and np.all(np.isfinite(rewards))
+    assert np.all(np.isfinite(grad)) and float(jnp.abs(grad).max()) > 0
