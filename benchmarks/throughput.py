@@ -1,0 +1,85 @@
+"""Per-task throughput: physics steps/s, forward+backward of a 32-step rollout, rendered frames/s,
+peak memory. CPU by default; the same script uses a GPU when JAX sees one.
+
+    python benchmarks/throughput.py [--tasks cartpole_swingup hopper] [--num-envs 64]
+
+Each task runs in its own process so that the peak memory column is that task's alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+HORIZON = 32
+
+
+def measure(name: str, num_envs: int) -> dict[str, float]:
+    import jax
+    import jax.numpy as jnp
+
+    from dva.analysis.bench import peak_memory_mb, timed
+    from dva.rendering import PixelRenderer
+    from dva.tasks import make_task
+
+    task = make_task(name)
+    state = jax.jit(task.reset, static_argnums=1)(jax.random.PRNGKey(0), num_envs)
+    actions = jax.random.uniform(jax.random.PRNGKey(1), (HORIZON, num_envs, task.action_dim), minval=-1, maxval=1)
+
+    def rollout_return(actions, state):
+        def one(state, action):
+            state = task.step(state, action)
+            return state, state.reward
+
+        state, rewards = jax.lax.scan(one, state, actions)
+        return rewards.sum(), state
+
+    forward = jax.jit(rollout_return)
+    compile_fwd, fwd, _ = timed(forward, actions, state)
+    backward = jax.jit(jax.grad(lambda a, s: rollout_return(a, s)[0]))
+    compile_bwd, fwd_bwd, _ = timed(backward, actions, state)
+    renderer = PixelRenderer(task, num_envs)
+    render = jax.jit(renderer.__call__)
+    _, render_time, _ = timed(render, state.data.qpos)
+    return {
+        "steps_per_s": HORIZON * num_envs / fwd,
+        "rollout_s": fwd,
+        "rollout_fwd_bwd_s": fwd_bwd,
+        "frames_per_s": num_envs / render_time,
+        "compile_s": compile_fwd + compile_bwd,
+        "peak_mb": peak_memory_mb(),
+    }
+
+
+def main() -> None:
+    from dva.tasks import TASKS
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--num-envs", type=int, default=64)
+    parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: measure one task, print JSON
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(measure(args.one, args.num_envs)))
+        return
+
+    from dva.analysis.bench import machine_description, markdown_table
+
+    rows = []
+    for name in args.tasks:
+        out = subprocess.run([sys.executable, __file__, "--one", name, "--num-envs", str(args.num_envs)],
+                             capture_output=True, text=True, check=True)
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append([name, f"{r['steps_per_s']:.0f}", f"{r['rollout_s']:.3f}", f"{r['rollout_fwd_bwd_s']:.3f}",
+                     f"{r['rollout_fwd_bwd_s'] / r['rollout_s']:.1f}", f"{r['frames_per_s']:.0f}",
+                     f"{r['peak_mb']:.0f}", f"{r['compile_s']:.0f}"])
+        print(f"{name}: done", flush=True)
+    print(f"\n{args.num_envs} envs, {HORIZON}-step rollouts; {machine_description()}\n")
+    print(markdown_table(["task", "env steps/s (fwd)", f"{HORIZON}-step rollout s", "fwd+bwd s",
+                          "bwd/fwd ratio", f"rendered frames/s (84²)", "peak MB", "compile s"], rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Learning algorithms. D.Va, SHAC and DPG-on-state are one trainer: :mod:`dva.algorithms.shac`."""

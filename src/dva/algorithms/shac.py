@@ -1,0 +1,293 @@
+"""Short-horizon actor-critic through the differentiable simulator — one implementation for
+
+* **D.Va**: ``observation="pixels"``, ``gradient="decoupled"`` (pixels enter via stop_gradient),
+* **SHAC**: ``observation="state"``, ``gradient="full"``,
+* **DPG on state** (paper Fig 13): ``observation="state"``, ``gradient="decoupled"``.
+
+One :meth:`SHAC.iteration` (jit it) rolls the policy out for ``horizon`` steps over ``num_envs``
+environments (physics, rendering, frame stack, sampling), differentiates the actor loss
+``L = −1/(N h) Σ [Σ_t γ^t r_t + γ^h V'(s_h)]`` through the dynamics, fits the critic to TD-λ
+targets for ``critic_iterations × critic_minibatches`` steps and updates the target critic.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from dva.networks import Actor, Critic, RunningStats
+from dva.rendering import PixelRenderer, push_frame, reset_frame_stack
+from dva.tasks import EnvState, Task
+
+MAX_ACTOR_GRAD_NORM = 1e8  # above this the run stops (ref. code)
+
+
+@dataclasses.dataclass(frozen=True)
+class SHACConfig:
+    """Hyperparameters (spec §1 defaults: Cartpole's row of Table 7)."""
+
+    observation: Literal["pixels", "state"] = "pixels"
+    gradient: Literal["decoupled", "full"] = "decoupled"
+    num_envs: int = 64
+    horizon: int = 32
+    gamma: float = 0.99
+    lam: float = 0.95
+    actor_lr: float = 2e-3
+    critic_lr: float = 2e-4
+    final_lr: float = 1e-5
+    betas: tuple[float, float] = (0.7, 0.95)
+    grad_clip: float = 1.0
+    target_alpha: float = 0.2
+    critic_iterations: int = 16
+    critic_minibatches: int = 4
+    trunk: int = 64
+    actor_hidden: tuple[int, ...] = (64, 64)
+    critic_hidden: tuple[int, ...] = (64, 64)
+    image_size: int = 84
+    frame_stack: int = 3
+    iterations: int = 4000  # length of the learning-rate decay
+
+    def __post_init__(self) -> None:
+        if self.observation not in ("pixels", "state"):
+            raise ValueError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
+        if self.gradient not in ("decoupled", "full"):
+            raise ValueError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
+        if self.observation == "pixels" and self.gradient == "full":
+            raise ValueError("gradient 'full' through pixels needs a differentiable renderer; "
+                             "the Warp renderer is not differentiable — use gradient='decoupled' (D.Va)")
+        if (self.num_envs * self.horizon) % self.critic_minibatches:
+            raise ValueError(f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
+                             f"{self.critic_minibatches} critic minibatches")
+
+
+class TrainState(struct.PyTreeNode):
+    """Everything one iteration reads and writes (a pytree: jittable, checkpointable)."""
+
+    actor_params: dict
+    critic_params: dict
+    target_critic_params: dict
+    actor_opt_state: optax.OptState
+    critic_opt_state: optax.OptState
+    obs_stats: RunningStats  # running mean/std of the state observation
+    env: EnvState
+    frames: jax.Array  # (N, H, W, 3·k) uint8 stacked frames; (N, 0) for state observations
+    episode_return: jax.Array  # (N,) undiscounted return of the running episodes
+    key: jax.Array
+    iteration: jax.Array
+
+
+class Trajectory(struct.PyTreeNode):
+    """What the critic learns from, one entry per step (h, N, ...); no gradients attached."""
+
+    critic_obs: jax.Array  # normalised state at the start of the step
+    reward: jax.Array
+    next_value: jax.Array  # V'(state reached), 0 where the episode terminated
+    boundary: jax.Array  # the episode or the horizon ends after this step (no λ-mixing past it)
+
+
+class SHAC:
+    """The trainer; see the module docstring. ``renderer`` is required for pixel observations."""
+
+    def __init__(self, task: Task, config: SHACConfig, renderer: PixelRenderer | None = None) -> None:
+        if config.observation == "pixels":
+            if renderer is None or renderer.num_envs != config.num_envs:
+                raise ValueError("pixel observations need a PixelRenderer with num_envs == config.num_envs")
+        self.task, self.config, self.renderer = task, config, renderer
+        self.actor = Actor(task.action_dim, config.actor_hidden, pixels=config.observation == "pixels",
+                           trunk=config.trunk)
+        self.critic = Critic(config.critic_hidden)
+
+        def optimizer(lr: float) -> optax.GradientTransformation:
+            schedule = optax.linear_schedule(lr, config.final_lr, config.iterations)
+            return optax.chain(optax.clip_by_global_norm(config.grad_clip),
+                               optax.adam(schedule, b1=config.betas[0], b2=config.betas[1]))
+
+        self.actor_opt = optimizer(config.actor_lr)
+        # The critic takes critic_iterations × critic_minibatches steps per iteration.
+        self.critic_opt = optax.chain(
+            optax.clip_by_global_norm(config.grad_clip),
+            optax.adam(optax.linear_schedule(config.critic_lr, config.final_lr,
+                                             config.iterations * config.critic_iterations * config.critic_minibatches),
+                       b1=config.betas[0], b2=config.betas[1]),
+        )
+
+    # ---- set-up -------------------------------------------------------------------------------
+    def init(self, key: jax.Array) -> TrainState:
+        """Fresh networks, optimisers and environments."""
+        env_key, actor_key, critic_key, key = jax.random.split(key, 4)
+        env = self.task.reset(env_key, self.config.num_envs)
+        frames = self.first_frames(env)
+        actor_params = self.actor.init(actor_key, self.observe(env, frames, RunningStats.create(self.task.obs_dim)))
+        critic_params = self.critic.init(critic_key, env.obs)
+        return TrainState(
+            actor_params=actor_params, critic_params=critic_params, target_critic_params=critic_params,
+            actor_opt_state=self.actor_opt.init(actor_params), critic_opt_state=self.critic_opt.init(critic_params),
+            obs_stats=RunningStats.create(self.task.obs_dim), env=env, frames=frames,
+            episode_return=jnp.zeros(self.config.num_envs), key=key, iteration=jnp.zeros((), jnp.int32),
+        )
+
+    def first_frames(self, env: EnvState) -> jax.Array:
+        """The frame stack of freshly reset environments (first frame tiled)."""
+        if self.config.observation != "pixels":
+            return jnp.zeros((self.config.num_envs, 0), jnp.uint8)
+        return reset_frame_stack(self.renderer(env.data.qpos), self.config.frame_stack)
+
+    def observe(self, env: EnvState, frames: jax.Array, stats: RunningStats) -> jax.Array:
+        """What the actor sees: the stacked frames, or the normalised state."""
+        if self.config.observation == "pixels":
+            return frames
+        return stats.normalize(env.obs)
+
+    # ---- the policy ---------------------------------------------------------------------------
+    def act(self, actor_params: dict, observation: jax.Array, noise: jax.Array | None) -> jax.Array:
+        """``tanh(μ + σ ⊙ ε)``; deterministic ``tanh(μ)`` when ``noise`` is None."""
+        mean, log_std = self.actor.apply(actor_params, observation)
+        pre_tanh = mean if noise is None else mean + jnp.exp(log_std) * noise
+        return jnp.tanh(pre_tanh)
+
+    def rollout(self, actor_params: dict, train: TrainState, noise: jax.Array):
+        """Roll the policy out for ``len(noise)`` steps; returns the actor loss and its by-products.
+
+        Differentiable with respect to ``actor_params``: the gradient flows through the physics,
+        the rewards and the target critic's value of the last state; with ``gradient="decoupled"``
+        it does not flow through the observation.
+        """
+        cfg, task = self.config, self.task
+        value = lambda obs: self.critic.apply(train.target_critic_params, train.obs_stats.normalize(obs))
+
+        def step(carry, eps):
+            env, frames, discount, discounted_sum, episode_return = carry
+            observation = self.observe(env, frames, train.obs_stats)
+            if cfg.gradient == "decoupled":
+                observation = jax.lax.stop_gradient(observation)
+            critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
+            env = task.step(env, self.act(actor_params, observation, eps))
+            if cfg.observation == "pixels":
+                frames = push_frame(frames, self.renderer(env.data.qpos), env.done)
+            next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
+            discounted_sum = discounted_sum + discount * env.reward
+            discount = discount * cfg.gamma
+            # An episode that ends inside the window adds its discounted return (+ bootstrap).
+            ended = jnp.where(env.done, discounted_sum + discount * next_value, 0.0)
+            episode_return = episode_return + jax.lax.stop_gradient(env.reward)
+            finished_return = jnp.where(env.done, episode_return, 0.0)
+            carry = (env, frames, jnp.where(env.done, 1.0, discount), jnp.where(env.done, 0.0, discounted_sum),
+                     jnp.where(env.done, 0.0, episode_return))
+            out = (ended, critic_obs, jax.lax.stop_gradient(env.reward), jax.lax.stop_gradient(next_value),
+                   env.done, finished_return, env.obs)
+            return carry, out
+
+        num_envs = cfg.num_envs
+        carry = (train.env, train.frames, jnp.ones(num_envs), jnp.zeros(num_envs), train.episode_return)
+        (env, frames, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, noise)
+        ended, critic_obs, reward, next_value, done, finished_return, visited_obs = out
+        # Episodes still running at the end of the window bootstrap from the target critic.
+        tail = jnp.where(done[-1], 0.0, discounted_sum + discount * value(env.obs))
+        loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise))
+        boundary = done.at[-1].set(True)
+        trajectory = Trajectory(critic_obs=critic_obs, reward=reward, next_value=next_value, boundary=boundary)
+        stats = {"finished_return_sum": finished_return.sum(), "finished_episodes": done.sum(),
+                 "mean_reward": reward.mean()}
+        return loss, (env, frames, episode_return, trajectory, visited_obs, stats)
+
+    # ---- the critic ---------------------------------------------------------------------------
+    def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):
+        """Fit the critic to TD-λ targets: ``critic_iterations`` epochs × ``critic_minibatches``."""
+        cfg = self.config
+        targets = td_lambda_targets(trajectory.reward, trajectory.next_value, trajectory.boundary, cfg.gamma, cfg.lam)
+        inputs = trajectory.critic_obs.reshape(-1, trajectory.critic_obs.shape[-1])
+        targets = targets.reshape(-1)
+        batch = inputs.shape[0] // cfg.critic_minibatches
+
+        def loss_fn(params, x, y):
+            return jnp.mean((self.critic.apply(params, x) - y) ** 2)
+
+        def minibatch_step(carry, indices):
+            params, opt_state = carry
+            loss, grads = jax.value_and_grad(loss_fn)(params, inputs[indices], targets[indices])
+            # NaN guard (ref. code): skip a step whose gradient is not finite.
+            finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
+            grads = jax.tree.map(lambda g: jnp.where(finite, g, 0.0), grads)
+            updates, opt_state = self.critic_opt.update(grads, opt_state, params)
+            return (optax.apply_updates(params, updates), opt_state), loss
+
+        def epoch(carry, epoch_key):
+            order = jax.random.permutation(epoch_key, inputs.shape[0]).reshape(cfg.critic_minibatches, batch)
+            return jax.lax.scan(minibatch_step, carry, order)
+
+        (params, opt_state), losses = jax.lax.scan(
+            epoch, (train.critic_params, train.critic_opt_state), jax.random.split(key, cfg.critic_iterations))
+        return params, opt_state, losses[-1].mean()
+
+    # ---- one iteration ------------------------------------------------------------------------
+    def iteration(self, train: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
+        """One training iteration: rollout + actor step, critic fit, target update."""
+        cfg = self.config
+        key, noise_key, critic_key = jax.random.split(train.key, 3)
+        noise = jax.random.normal(noise_key, (cfg.horizon, cfg.num_envs, self.task.action_dim))
+        (loss, aux), grads = jax.value_and_grad(self.rollout, has_aux=True)(train.actor_params, train, noise)
+        env, frames, episode_return, trajectory, visited_obs, stats = aux
+        grad_norm = optax.global_norm(grads)
+        healthy = jnp.isfinite(grad_norm) & (grad_norm <= MAX_ACTOR_GRAD_NORM)
+        updates, actor_opt_state = self.actor_opt.update(grads, train.actor_opt_state, train.actor_params)
+        actor_params = optax.apply_updates(train.actor_params, updates)
+        # A bad gradient leaves the actor untouched; the training loop stops on it.
+        actor_params, actor_opt_state = jax.tree.map(
+            lambda new, old: jnp.where(healthy, new, old),
+            (actor_params, actor_opt_state), (train.actor_params, train.actor_opt_state))
+
+        critic_params, critic_opt_state, critic_loss = self.critic_update(train, trajectory, critic_key)
+        target = jax.tree.map(lambda t, p: cfg.target_alpha * t + (1.0 - cfg.target_alpha) * p,
+                              train.target_critic_params, critic_params)
+        train = train.replace(
+            actor_params=actor_params, critic_params=critic_params, target_critic_params=target,
+            actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
+            obs_stats=train.obs_stats.update(visited_obs), env=env, frames=frames,
+            episode_return=episode_return, key=key, iteration=train.iteration + 1,
+        )
+        metrics = {"actor_loss": loss, "actor_grad_norm": grad_norm, "critic_loss": critic_loss,
+                   "healthy": healthy, **stats}
+        return train, metrics
+
+    # ---- evaluation ---------------------------------------------------------------------------
+    def evaluate(self, actor_params: dict, obs_stats: RunningStats, key: jax.Array) -> jax.Array:
+        """Deterministic policy (``tanh(μ)``) over one full episode per env: returns (N,)."""
+        env = self.task.reset(key, self.config.num_envs)
+        frames = self.first_frames(env)
+
+        def step(carry, _):
+            env, frames, total, running = carry
+            action = self.act(actor_params, self.observe(env, frames, obs_stats), None)
+            env = self.task.step(env, action)
+            if self.config.observation == "pixels":
+                frames = push_frame(frames, self.renderer(env.data.qpos), env.done)
+            total = total + running * env.reward
+            return (env, frames, total, running * (1.0 - env.done)), None
+
+        zeros = jnp.zeros(self.config.num_envs)
+        (_, _, total, _), _ = jax.lax.scan(step, (env, frames, zeros, zeros + 1.0), None,
+                                           length=self.task.episode_length)
+        return total
+
+
+def td_lambda_targets(reward: jax.Array, next_value: jax.Array, boundary: jax.Array,
+                      gamma: float, lam: float) -> jax.Array:
+    """TD-λ targets over a window (time-major, (h, N)).
+
+    ``R_t = r_t + γ [(1 − λ) V_{t+1} + λ R_{t+1}]`` inside an episode and ``R_t = r_t + γ V_{t+1}``
+    where the episode or the window ends after step t (``V_{t+1}`` is 0 on termination). This is
+    the spec's truncated sum ``(1−λ) Σ_k λ^{k−1} G_t^k + λ^{H−t−1} G_t^{H−t}`` computed backwards.
+    """
+
+    def back(next_return, inputs):
+        r, v, end = inputs
+        ret = r + gamma * jnp.where(end, v, (1.0 - lam) * v + lam * next_return)
+        return ret, ret
+
+    _, returns = jax.lax.scan(back, jnp.zeros_like(reward[0]), (reward, next_value, boundary), reverse=True)
+    return returns

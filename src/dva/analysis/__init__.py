@@ -1,0 +1,1 @@
+"""Analyses and benchmarks of the tasks, renderer and algorithms."""

@@ -1,0 +1,48 @@
+"""Timing, memory and table helpers shared by the scripts in ``benchmarks/``."""
+
+from __future__ import annotations
+
+import resource
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+
+
+def timed(fn: Callable[..., Any], *args: Any, repeats: int = 3) -> tuple[float, float, Any]:
+    """(compile-and-first-run seconds, best steady-state seconds, output) of ``fn(*args)``."""
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - start
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return first, best, out
+
+
+def peak_memory_mb() -> float:
+    """Peak memory so far: the device's peak bytes where it reports them (GPU), else the
+    process's peak resident set (CPU: includes everything the process holds)."""
+    stats = jax.devices()[0].memory_stats() or {}
+    if "peak_bytes_in_use" in stats:
+        return stats["peak_bytes_in_use"] / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def machine_description() -> str:
+    """One line naming the backend, device and CPU count the numbers came from."""
+    import os
+    import platform
+
+    device = jax.devices()[0]
+    return f"{platform.machine()} {os.cpu_count()} cores, JAX {jax.__version__} on {device.platform} ({device.device_kind})"
