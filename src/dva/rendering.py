@@ -17,6 +17,7 @@ from dva.tasks import Task
 
 DEFAULT_IMAGE_SIZE = 84
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 1024
+MAX_DEPTH = 30.0  # metres; farther surfaces read as this
 
 
 class PixelRenderer:
@@ -73,7 +74,7 @@ class PixelRenderer:
         """Render ``qpos`` of shape ``(num_envs, nq)``.
 
         Returns uint8 RGB ``(num_envs, height, width, 3)``; with ``depth=True`` also float32
-        depth in metres ``(num_envs, height, width)``.
+        depth in metres ``(num_envs, height, width)``, clipped at ``MAX_DEPTH``.
         """
         if qpos.shape != (self.num_envs, self.task.mj_model.nq):
             raise ValueError(
@@ -91,7 +92,8 @@ class PixelRenderer:
         rgb = jnp.round(rgb * 255.0).astype(jnp.uint8)
         if not self.depth:
             return rgb
-        depth = mjx.get_depth(context, self._camera_slot, depth_packed, 1.0)
+        # get_depth divides by a scale and clips to [0, 1]: scale by the far limit, then back.
+        depth = MAX_DEPTH * mjx.get_depth(context, self._camera_slot, depth_packed, MAX_DEPTH)[..., 0]
         return rgb, depth
 
 
