@@ -1,4 +1,4 @@
-"""The ``dva`` command line: ``dva tasks``, ``dva render`` (more subcommands as they land)."""
+"""The ``dva`` command line: ``dva tasks``, ``dva render``, ``dva train``."""
 
 from __future__ import annotations
 
@@ -62,6 +62,34 @@ class RenderCommand:
         print(f"wrote {grid_path} and {video_path}")
 
 
+@dataclasses.dataclass
+class TrainCommand:
+    """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full) or DPG on state."""
+
+    task: str = "cartpole_swingup"
+    algo: str = "dva"
+    """dva | shac | dpg-state"""
+    preset: str = "cpu"
+    """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
+    seed: int = 0
+    iterations: int | None = None
+    """Stop after this many iterations (default: the preset's)."""
+    minutes: float | None = None
+    """Stop after this much wall-clock time."""
+    run_dir: Path = Path("runs/latest")
+    resume: bool = False
+    """Continue the run in --run-dir from its last checkpoint."""
+    eval_every: int = 25
+    checkpoint_every: int = 25
+
+    def run(self) -> None:
+        from dva.training import train
+
+        run_dir = train(self.task, self.algo, self.preset, self.seed, self.iterations, self.minutes,
+                        self.run_dir, self.resume, self.eval_every, self.checkpoint_every)
+        print(f"run written to {run_dir}")
+
+
 def _task_check(name: str) -> None:
     if name not in TASKS:
         raise ValueError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
@@ -70,6 +98,7 @@ def _task_check(name: str) -> None:
 COMMANDS = {
     "tasks": TasksCommand,
     "render": RenderCommand,
+    "train": TrainCommand,
 }
 
 
