@@ -144,29 +144,31 @@ class SHAC:
         return stats.normalize(env.obs)
 
     # ---- the policy ---------------------------------------------------------------------------
-    def act(self, actor_params: dict, observation: jax.Array, noise: jax.Array | None) -> jax.Array:
-        """``tanh(μ + σ ⊙ ε)``; deterministic ``tanh(μ)`` when ``noise`` is None."""
+    def pre_tanh_action(self, actor_params: dict, observation: jax.Array, noise: jax.Array | None) -> jax.Array:
+        """``μ + σ ⊙ ε`` (reparameterised); ``μ`` when ``noise`` is None. The env gets its tanh."""
         mean, log_std = self.actor.apply(actor_params, observation)
-        pre_tanh = mean if noise is None else mean + jnp.exp(log_std) * noise
-        return jnp.tanh(pre_tanh)
+        return mean if noise is None else mean + jnp.exp(log_std) * noise
 
-    def rollout(self, actor_params: dict, train: TrainState, noise: jax.Array):
+    def rollout(self, actor_params: dict, train: TrainState, noise: jax.Array, action_offset: jax.Array | None = None):
         """Roll the policy out for ``len(noise)`` steps; returns the actor loss and its by-products.
 
         Differentiable with respect to ``actor_params``: the gradient flows through the physics,
         the rewards and the target critic's value of the last state; with ``gradient="decoupled"``
-        it does not flow through the observation.
+        it does not flow through the observation. ``action_offset`` (h, N, A), added to the
+        pre-tanh actions, exposes the gradient with respect to the open-loop actions.
         """
         cfg, task = self.config, self.task
         value = lambda obs: self.critic.apply(train.target_critic_params, train.obs_stats.normalize(obs))
 
-        def step(carry, eps):
+        def step(carry, inputs):
             env, frames, discount, discounted_sum, episode_return = carry
+            eps, offset = inputs
             observation = self.observe(env, frames, train.obs_stats)
             if cfg.gradient == "decoupled":
                 observation = jax.lax.stop_gradient(observation)
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
-            env = task.step(env, self.act(actor_params, observation, eps))
+            pre_tanh = self.pre_tanh_action(actor_params, observation, eps) + offset
+            env = task.step(env, jnp.tanh(pre_tanh))
             if cfg.observation == "pixels":
                 frames = push_frame(frames, self.renderer(env.data.qpos), env.done)
             next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
@@ -179,13 +181,14 @@ class SHAC:
             carry = (env, frames, jnp.where(env.done, 1.0, discount), jnp.where(env.done, 0.0, discounted_sum),
                      jnp.where(env.done, 0.0, episode_return))
             out = (ended, critic_obs, jax.lax.stop_gradient(env.reward), jax.lax.stop_gradient(next_value),
-                   env.done, finished_return, env.obs)
+                   env.done, finished_return, env.obs, observation, pre_tanh)
             return carry, out
 
         num_envs = cfg.num_envs
         carry = (train.env, train.frames, jnp.ones(num_envs), jnp.zeros(num_envs), train.episode_return)
-        (env, frames, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, noise)
-        ended, critic_obs, reward, next_value, done, finished_return, visited_obs = out
+        offsets = jnp.zeros_like(noise) if action_offset is None else action_offset
+        (env, frames, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, (noise, offsets))
+        ended, critic_obs, reward, next_value, done, finished_return, visited_obs, observations, actions = out
         # Episodes still running at the end of the window bootstrap from the target critic.
         tail = jnp.where(done[-1], 0.0, discounted_sum + discount * value(env.obs))
         loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise))
@@ -193,7 +196,9 @@ class SHAC:
         trajectory = Trajectory(critic_obs=critic_obs, reward=reward, next_value=next_value, boundary=boundary)
         stats = {"finished_return_sum": finished_return.sum(), "finished_episodes": done.sum(),
                  "mean_reward": reward.mean()}
-        return loss, (env, frames, episode_return, trajectory, visited_obs, stats)
+        # The actor's inputs and pre-tanh actions per step (for Theorem 1's behaviour cloning).
+        taken = {"observations": observations, "actions": actions}
+        return loss, (env, frames, episode_return, trajectory, visited_obs, stats, taken)
 
     # ---- the critic ---------------------------------------------------------------------------
     def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):
@@ -231,7 +236,7 @@ class SHAC:
         key, noise_key, critic_key = jax.random.split(train.key, 3)
         noise = jax.random.normal(noise_key, (cfg.horizon, cfg.num_envs, self.task.action_dim))
         (loss, aux), grads = jax.value_and_grad(self.rollout, has_aux=True)(train.actor_params, train, noise)
-        env, frames, episode_return, trajectory, visited_obs, stats = aux
+        env, frames, episode_return, trajectory, visited_obs, stats, _ = aux
         grad_norm = optax.global_norm(grads)
         healthy = jnp.isfinite(grad_norm) & (grad_norm <= MAX_ACTOR_GRAD_NORM)
         updates, actor_opt_state = self.actor_opt.update(grads, train.actor_opt_state, train.actor_params)
@@ -262,8 +267,8 @@ class SHAC:
 
         def step(carry, _):
             env, frames, total, running = carry
-            action = self.act(actor_params, self.observe(env, frames, obs_stats), None)
-            env = self.task.step(env, action)
+            action = self.pre_tanh_action(actor_params, self.observe(env, frames, obs_stats), None)
+            env = self.task.step(env, jnp.tanh(action))
             if self.config.observation == "pixels":
                 frames = push_frame(frames, self.renderer(env.data.qpos), env.done)
             total = total + running * env.reward
