@@ -30,4 +30,5 @@ def configure_caches() -> None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     import warp
 
-    warp.config.quiet = True  # no banner or per-kernel load lines on stdout
+    warp.config.quiet = True  # no start-up banner on stdout
+    warp.config.log_level = warp.LOG_WARNING  # no per-kernel "Module … load" lines
