@@ -200,6 +200,26 @@ class SHAC:
         taken = {"observations": observations, "actions": actions}
         return loss, (env, frames, episode_return, trajectory, visited_obs, stats, taken)
 
+    def actor_gradient(self, actor_params: dict, train: TrainState, noise: jax.Array):
+        """``(loss, aux, ∇θ loss)`` of :meth:`rollout`.
+
+        Decoupled: by Theorem 1 the gradient is ``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` with the open-loop
+        action gradient ``∇_{a_t} L``. So the scan differentiates only the physics (with respect
+        to action offsets) and the actor — the pixel encoder above all — is differentiated once,
+        batched over all ``h × N`` observations, instead of step by step inside the scan.
+        Full: plain reverse mode through everything.
+        """
+        if self.config.gradient == "full":
+            (loss, aux), grads = jax.value_and_grad(self.rollout, has_aux=True)(actor_params, train, noise)
+            return loss, aux, grads
+        frozen = jax.lax.stop_gradient(actor_params)
+        offsets = jnp.zeros_like(noise)
+        (loss, aux), action_grad = jax.value_and_grad(
+            lambda w: self.rollout(frozen, train, noise, w), has_aux=True)(offsets)
+        observations = aux[-1]["observations"]
+        _, actor_vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observations, noise), actor_params)
+        return loss, aux, actor_vjp(action_grad)[0]
+
     # ---- the critic ---------------------------------------------------------------------------
     def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):
         """Fit the critic to TD-λ targets: ``critic_iterations`` epochs × ``critic_minibatches``."""
@@ -235,7 +255,7 @@ class SHAC:
         cfg = self.config
         key, noise_key, critic_key = jax.random.split(train.key, 3)
         noise = jax.random.normal(noise_key, (cfg.horizon, cfg.num_envs, self.task.action_dim))
-        (loss, aux), grads = jax.value_and_grad(self.rollout, has_aux=True)(train.actor_params, train, noise)
+        loss, aux, grads = self.actor_gradient(train.actor_params, train, noise)
         env, frames, episode_return, trajectory, visited_obs, stats, _ = aux
         grad_norm = optax.global_norm(grads)
         healthy = jnp.isfinite(grad_norm) & (grad_norm <= MAX_ACTOR_GRAD_NORM)
