@@ -47,7 +47,9 @@ def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):
         train("cartpole_swingup", iterations=1, run_dir=run_dir, resume=True)
     with pytest.raises(ValueError, match="unknown algo 'ppo'"):
         make_config("cartpole_swingup", "ppo", "cpu")
-    with pytest.raises(ValueError, match="unknown preset 'gpu'"):
+    with pytest.raises(ValueError, match="unknown task .walker."):
+        make_config("walker", "dva", "cpu")
+    with pytest.raises(ValueError, match="unknown preset .gpu."):
         make_config("cartpole_swingup", "dva", "gpu")
     with pytest.raises(ValueError, match="needs a differentiable renderer"):
         make_config("cartpole_swingup", "dva", "cpu", gradient="full")

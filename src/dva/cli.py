@@ -9,7 +9,7 @@ from typing import Annotated
 
 import tyro
 
-from dva.tasks import TASKS
+from dva.tasks import TASKS, check_task_name
 
 
 @dataclasses.dataclass
@@ -90,11 +90,6 @@ class TrainCommand:
         print(f"run written to {run_dir}")
 
 
-def _task_check(name: str) -> None:
-    if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
-
-
 COMMANDS = {
     "tasks": TasksCommand,
     "render": RenderCommand,
@@ -111,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     try:
         if hasattr(command, "task"):
-            _task_check(command.task)
+            check_task_name(command.task)  # fail before any heavy set-up
         command.run()
     except ValueError as error:  # bad input: one line naming the value and the choices
         print(f"dva: error: {error}", file=sys.stderr)

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from dva.algorithms.shac import SHAC, SHACConfig, TrainState
 from dva.rendering import PixelRenderer
-from dva.tasks import make_task
+from dva.tasks import check_task_name, make_task
 
 ALGORITHMS = {  # algorithm → (actor observation, gradient)
     "dva": ("pixels", "decoupled"),
@@ -45,6 +45,7 @@ PRESETS = ("paper", "cpu")
 
 def make_config(task: str, algo: str, preset: str, **overrides) -> SHACConfig:
     """The configuration of ``algo`` on ``task`` under ``preset`` ('paper' or 'cpu')."""
+    check_task_name(task)
     if algo not in ALGORITHMS:
         raise ValueError(f"unknown algo {algo!r}; choose one of: {', '.join(ALGORITHMS)}")
     if preset not in PRESETS:

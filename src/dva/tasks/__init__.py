@@ -14,12 +14,17 @@ TASKS: dict[str, type[Task]] = {
 }
 
 
+def check_task_name(name: str) -> None:
+    """Raise a one-line ``ValueError`` naming ``name`` and the tasks there are."""
+    if name not in TASKS:
+        raise ValueError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
+
+
 @functools.cache
 def make_task(name: str) -> Task:
     """The task called ``name`` (built once per process)."""
-    if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
+    check_task_name(name)
     return TASKS[name]()
 
 
-__all__ = ["CONTROL_DT", "EnvState", "TASKS", "Task", "make_task"]
+__all__ = ["CONTROL_DT", "EnvState", "TASKS", "Task", "check_task_name", "make_task"]
