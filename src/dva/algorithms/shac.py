@@ -257,7 +257,7 @@ class SHAC:
         noise = jax.random.normal(noise_key, (cfg.horizon, cfg.num_envs, self.task.action_dim))
         loss, aux, grads = self.actor_gradient(train.actor_params, train, noise)
         env, frames, episode_return, trajectory, visited_obs, stats, _ = aux
-        grad_norm = optax.global_norm(grads)
+        grad_norm = optax.tree.norm(grads)
         healthy = jnp.isfinite(grad_norm) & (grad_norm <= MAX_ACTOR_GRAD_NORM)
         updates, actor_opt_state = self.actor_opt.update(grads, train.actor_opt_state, train.actor_params)
         actor_params = optax.apply_updates(train.actor_params, updates)
