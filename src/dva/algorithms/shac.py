@@ -102,19 +102,16 @@ class SHAC:
                            trunk=config.trunk)
         self.critic = Critic(config.critic_hidden)
 
-        def optimizer(lr: float) -> optax.GradientTransformation:
-            schedule = optax.linear_schedule(lr, config.final_lr, config.iterations)
+        def optimizer(lr: float, steps: int) -> optax.GradientTransformation:
+            """Adam after global-norm clipping, learning rate decayed linearly over ``steps``."""
+            schedule = optax.linear_schedule(lr, config.final_lr, steps)
             return optax.chain(optax.clip_by_global_norm(config.grad_clip),
                                optax.adam(schedule, b1=config.betas[0], b2=config.betas[1]))
 
-        self.actor_opt = optimizer(config.actor_lr)
+        self.actor_opt = optimizer(config.actor_lr, config.iterations)
         # The critic takes critic_iterations × critic_minibatches steps per iteration.
-        self.critic_opt = optax.chain(
-            optax.clip_by_global_norm(config.grad_clip),
-            optax.adam(optax.linear_schedule(config.critic_lr, config.final_lr,
-                                             config.iterations * config.critic_iterations * config.critic_minibatches),
-                       b1=config.betas[0], b2=config.betas[1]),
-        )
+        self.critic_opt = optimizer(config.critic_lr,
+                                    config.iterations * config.critic_iterations * config.critic_minibatches)
 
     # ---- set-up -------------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
