@@ -134,6 +134,12 @@ class SHAC:
             return jnp.zeros((self.config.num_envs, 0), jnp.uint8)
         return reset_frame_stack(self.renderer(env.data.qpos), self.config.frame_stack)
 
+    def next_frames(self, frames: jax.Array, env: EnvState) -> jax.Array:
+        """The frame stack after a step: the new frame appended (tiled where an episode restarted)."""
+        if self.config.observation != "pixels":
+            return frames
+        return push_frame(frames, self.renderer(env.data.qpos), env.done)
+
     def observe(self, env: EnvState, frames: jax.Array, stats: RunningStats) -> jax.Array:
         """What the actor sees: the stacked frames, or the normalised state."""
         if self.config.observation == "pixels":
@@ -166,8 +172,7 @@ class SHAC:
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
             pre_tanh = self.pre_tanh_action(actor_params, observation, eps) + offset
             env = task.step(env, jnp.tanh(pre_tanh))
-            if cfg.observation == "pixels":
-                frames = push_frame(frames, self.renderer(env.data.qpos), env.done)
+            frames = self.next_frames(frames, env)
             next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
             discounted_sum = discounted_sum + discount * env.reward
             discount = discount * cfg.gamma
@@ -286,8 +291,7 @@ class SHAC:
             env, frames, total, running = carry
             action = self.pre_tanh_action(actor_params, self.observe(env, frames, obs_stats), None)
             env = self.task.step(env, jnp.tanh(action))
-            if self.config.observation == "pixels":
-                frames = push_frame(frames, self.renderer(env.data.qpos), env.done)
+            frames = self.next_frames(frames, env)
             total = total + running * env.reward
             return (env, frames, total, running * (1.0 - env.done)), None
 
