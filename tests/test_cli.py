@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import imageio.v3 as iio
+import numpy as np
 import pytest
 
 from dva.cli import main
@@ -37,3 +38,40 @@ def test_bad_image_size_is_one_line_error(capsys):
     with pytest.raises(SystemExit):
         main(["render", "--task", "cartpole_swingup", "--image-size", "5"])
     assert "image width 5 is not allowed" in capsys.readouterr().err
+
+
+def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
+    """A tiny D.Va run (pixels, decoupled) through the CLI: train (with its report: plots and a
+    policy video) → plot → eval."""
+    run_dir = tmp_path / "run"
+    main(["train", "--task", "cartpole_swingup", "--algo", "dva", "--iterations", "2", "--run-dir", str(run_dir),
+          "--eval-every", "2", "--num-envs", "4", "--horizon", "8", "--image-size", "24"])
+    log = (run_dir / "progress.csv").read_text().splitlines()
+    assert [line.split(",")[0] for line in log[1:]] == ["0", "1", "2"]  # iteration 0 = untrained policy
+    assert "dva on cartpole_swingup: return" in capsys.readouterr().out
+    frames = iio.imread(run_dir / "policy.mp4")
+    # 240 steps; per env the 24-px camera view upscaled to 256 next to the 256-px view, 4 envs stacked.
+    assert frames.shape == (240, 4 * 256 + 5 * 2, 2 * 256 + 2 * 2, 3)
+    camera, view = frames[:, 2:258, 2:258], frames[:, 2:258, 258:514]
+    assert camera.std(axis=0).max() > 10 and view.std(axis=0).max() > 10  # both panels move
+    main(["plot", str(run_dir), str(run_dir), "--out", str(tmp_path / "plots")])
+    for name in ("eval_return_vs_env_steps.png", "eval_return_vs_wall_time.png"):
+        assert iio.imread(tmp_path / "plots" / name).ndim == 3
+        assert (run_dir / name).exists()
+    main(["eval", str(run_dir), "--seed", "3"])
+    assert "return" in capsys.readouterr().out and not (tmp_path / "policy.mp4").exists()
+
+
+def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
+    from dva.analysis.plots import mean_and_std, plot_runs
+
+    a = {"env_steps": np.array([0.0, 10.0, 20.0]), "eval_return": np.array([0.0, 10.0, 20.0])}
+    b = {"env_steps": np.array([0.0, 5.0, 15.0]), "eval_return": np.array([0.0, 15.0, 45.0])}
+    x, mean, std = mean_and_std([a, b], "env_steps", "eval_return")
+    assert x[0] == 0.0 and x[-1] == 15.0  # up to the shortest run
+    np.testing.assert_allclose(mean[-1], (15.0 + 45.0) / 2)
+    np.testing.assert_allclose(std[-1], 15.0)
+    with pytest.raises(ValueError, match="metric 'loss' is not allowed"):
+        plot_runs([tmp_path], tmp_path, "loss")
+    with pytest.raises(ValueError, match="has no progress.csv"):
+        plot_runs([tmp_path], tmp_path)

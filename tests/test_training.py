@@ -21,13 +21,14 @@ def test_train_resume_continues_the_curve(tmp_path):
     run_dir = tmp_path / "run"
     train("cartpole_swingup", "shac", "cpu", iterations=3, run_dir=run_dir, eval_every=3, checkpoint_every=2, **SMALL)
     first = rows(run_dir)
-    assert [int(r["iteration"]) for r in first] == [1, 2, 3]
-    assert [int(r["env_steps"]) for r in first] == [32, 64, 96]
+    assert [int(r["iteration"]) for r in first] == [0, 1, 2, 3]  # 0: the untrained policy's return
+    assert [int(r["env_steps"]) for r in first] == [0, 32, 64, 96]
+    assert first[0]["eval_return"] != "" and first[1]["eval_return"] == ""
     assert first[-1]["eval_return"] != ""  # evaluated at iteration 3
     assert (run_dir / "checkpoints" / "3").is_dir() and (run_dir / "tensorboard").is_dir()
     train("cartpole_swingup", iterations=2, run_dir=run_dir, resume=True, eval_every=3, checkpoint_every=2)
     resumed = rows(run_dir)
-    assert [int(r["iteration"]) for r in resumed] == [1, 2, 3, 4, 5]
+    assert [int(r["iteration"]) for r in resumed] == [0, 1, 2, 3, 4, 5]
     times = [float(r["wall_time"]) for r in resumed]
     assert times == sorted(times)  # the clock continues across the resume
 

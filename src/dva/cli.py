@@ -1,9 +1,10 @@
-"""The ``dva`` command line: ``dva tasks``, ``dva render``, ``dva train``."""
+"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``."""
 
 from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -76,24 +77,86 @@ class TrainCommand:
     """Stop after this many iterations (default: the preset's)."""
     minutes: float | None = None
     """Stop after this much wall-clock time."""
-    run_dir: Path = Path("runs/latest")
+    run_dir: Path | None = None
+    """Where logs and checkpoints go (default: runs/TASK_ALGO_sSEED_TIME)."""
     resume: bool = False
     """Continue the run in --run-dir from its last checkpoint."""
+    report: bool = True
+    """At the end, write the return plots and a video of the policy into the run directory."""
     eval_every: int = 25
     checkpoint_every: int = 25
+    num_envs: int | None = None
+    """Override the preset's number of parallel envs."""
+    horizon: int | None = None
+    """Override the preset's short horizon h."""
+    image_size: int | None = None
+    """Override the preset's image side (pixels)."""
 
     def run(self) -> None:
         from dva.training import train
 
+        if self.run_dir is None:
+            if self.resume:
+                raise ValueError("--resume needs --run-dir: the run to continue")
+            self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         run_dir = train(self.task, self.algo, self.preset, self.seed, self.iterations, self.minutes,
-                        self.run_dir, self.resume, self.eval_every, self.checkpoint_every)
+                        self.run_dir, self.resume, self.eval_every, self.checkpoint_every,
+                        num_envs=self.num_envs, horizon=self.horizon, image_size=self.image_size)
         print(f"run written to {run_dir}")
+        if self.report:
+            PlotCommand([run_dir], out=run_dir).run()
+            EvalCommand(run_dir, video=run_dir / "policy.mp4").run()
+
+
+@dataclasses.dataclass
+class EvalCommand:
+    """Replay a run's latest policy (deterministic, one episode per env), print the returns and
+    optionally write a video: the actor's camera view next to a larger view."""
+
+    run_dir: tyro.conf.Positional[Path]
+    video: Path | None = None
+    """Where to write the mp4 (none: returns only)."""
+    video_envs: int = 4
+    video_size: int = 256
+    seed: int = 0
+
+    def run(self) -> None:
+        import numpy as np
+
+        from dva.tasks import make_task
+        from dva.training import evaluate_run
+        from dva.visualize import policy_video
+
+        spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
+        print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
+              f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f})")
+        if self.video is not None:
+            policy_video(self.video, make_task(spec.task), qpos, camera, self.video_envs, self.video_size)
+            print(f"wrote {self.video}")
+
+
+@dataclasses.dataclass
+class PlotCommand:
+    """Plot return vs wall-clock and vs env steps; runs of one task and algo are averaged (mean ± std)."""
+
+    run_dirs: tyro.conf.Positional[list[Path]]
+    out: Path = Path("plots")
+    metric: str = "eval_return"
+    """eval_return (deterministic, full episodes) | train_return (episodes finished in training)"""
+
+    def run(self) -> None:
+        from dva.analysis.plots import plot_runs
+
+        for path in plot_runs(self.run_dirs, self.out, self.metric):
+            print(f"wrote {path}")
 
 
 COMMANDS = {
     "tasks": TasksCommand,
     "render": RenderCommand,
     "train": TrainCommand,
+    "eval": EvalCommand,
+    "plot": PlotCommand,
 }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import time
 from pathlib import Path
@@ -81,6 +82,33 @@ def build(spec: RunSpec) -> tuple[SHAC, PixelRenderer | None]:
     return SHAC(task, config, renderer), renderer
 
 
+def load_run(run_dir: Path) -> tuple[RunSpec, SHAC, PixelRenderer | None, TrainState]:
+    """A finished or running run: its spec, trainer, renderer and latest checkpointed state."""
+    run_dir = Path(run_dir)
+    spec_path = run_dir / "run.json"
+    if not spec_path.exists():
+        raise ValueError(f"{run_dir} is not a run directory (missing run.json)")
+    spec = RunSpec(**json.loads(spec_path.read_text()))
+    agent, renderer = build(spec)
+    manager = checkpoint_manager(run_dir)
+    if manager.latest_step() is None:
+        raise ValueError(f"{run_dir} has no checkpoint yet")
+    state = restore(manager, jax.jit(agent.init)(jax.random.PRNGKey(spec.seed)))
+    return spec, agent, renderer, state
+
+
+def evaluate_run(run_dir: Path, seed: int = 0) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:
+    """Replay a run's latest policy deterministically for one episode per env.
+
+    Returns the spec, the episode returns (N,), and per step the ``qpos`` (T, N, nq) and the
+    newest camera frame the actor saw (T, N, H, W, 3; empty for state observations).
+    """
+    spec, agent, _renderer, state = load_run(run_dir)
+    evaluate = jax.jit(functools.partial(agent.evaluate, record=True))
+    returns, qpos, camera = jax.device_get(evaluate(state.actor_params, state.obs_stats, jax.random.PRNGKey(seed)))
+    return spec, returns, qpos, camera
+
+
 def checkpoint_manager(run_dir: Path) -> ocp.CheckpointManager:
     """Orbax manager writing to ``run_dir/checkpoints`` (atomic: written aside, then renamed)."""
     options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
@@ -151,6 +179,12 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
     start = time.perf_counter()
     first = int(state.iteration)
     last_train_return = float("nan")
+    if not rows:  # the untrained policy's return: where the curve starts
+        row = {"iteration": 0, "env_steps": 0, "wall_time": 0.0, "train_return": float("nan"),
+               "eval_return": float(np.mean(evaluate(state.actor_params, state.obs_stats, jax.random.PRNGKey(10_000)))),
+               "actor_loss": "", "actor_grad_norm": "", "critic_loss": "", "iteration_time": ""}
+        rows.append(row)
+        _log(run_dir, writer, row)
     bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
         while True:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -10,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dva.rendering import PixelRenderer
-from dva.tasks import EnvState, Task
+from dva.tasks import CONTROL_DT, EnvState, Task
 
 
 def image_grid(images: np.ndarray, columns: int | None = None, pad: int = 2) -> np.ndarray:
@@ -46,17 +47,48 @@ def random_rollout(task: Task, key: jax.Array, num_envs: int, steps: int) -> tup
 def write_video(path: Path, frames: list[np.ndarray] | np.ndarray, fps: int = 30) -> None:
     """Write RGB ``frames`` (T, H, W, 3) uint8 as an H.264 mp4."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimwrite(path, list(frames), fps=fps, macro_block_size=1)
+    with warnings.catch_warnings():
+        # imageio starts ffmpeg as a subprocess; it does not touch JAX, so the fork is safe.
+        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+        imageio.mimwrite(path, list(frames), fps=fps, macro_block_size=1)
 
 
-def render_trajectory(renderer: PixelRenderer, qpos_trajectory: jax.Array, columns: int | None = None) -> np.ndarray:
-    """Render each step of ``qpos_trajectory`` (T, num_envs, nq) and tile the envs: (T, H', W', 3)."""
+def render_trajectory(renderer: PixelRenderer, qpos_trajectory: jax.Array, columns: int | None = None,
+                      tile: bool = True) -> np.ndarray:
+    """Render each step of ``qpos_trajectory`` (T, num_envs, nq): tiled into one image per step
+    (T, H', W', 3), or with ``tile=False`` per env (T, num_envs, H, W, 3)."""
     render = jax.jit(renderer.__call__)
-    frames = [image_grid(np.asarray(render(jnp.asarray(qpos))), columns) for qpos in qpos_trajectory]
-    return np.stack(frames)
+    frames = [np.asarray(render(jnp.asarray(qpos))) for qpos in qpos_trajectory]
+    return np.stack([image_grid(f, columns) for f in frames] if tile else frames)
 
 
 def save_png(path: Path, image: np.ndarray) -> None:
     """Write one RGB image."""
     path.parent.mkdir(parents=True, exist_ok=True)
     imageio.imwrite(path, image)
+
+
+def upscale(images: np.ndarray, size: int) -> np.ndarray:
+    """Nearest-neighbour resize of (..., H, W, C) images to (..., size, size, C)."""
+    rows = np.arange(size) * images.shape[-3] // size
+    cols = np.arange(size) * images.shape[-2] // size
+    return images[..., rows[:, None], cols[None, :], :]
+
+
+def side_by_side_video(camera: np.ndarray | None, views: np.ndarray) -> np.ndarray:
+    """Frames (T, H', W', 3) with, per env, the actor's camera view (upscaled to the view size,
+    when given: (T, N, h, w, 3)) left of a larger view (T, N, S, S, 3); envs stacked vertically."""
+    if camera is not None:
+        views = np.concatenate([upscale(camera, views.shape[-2]), views], axis=-2)
+    return np.stack([image_grid(step, columns=1) for step in views])
+
+
+def policy_video(path: Path, task: Task, qpos: np.ndarray, camera: np.ndarray, num_envs: int = 4,
+                 size: int = 256) -> None:
+    """An mp4 of a recorded rollout (``qpos`` (T, N, nq)) of the first ``num_envs`` envs: the
+    actor's camera frames (T, N, h, w, 3; may be empty) next to a ``size``² view, in real time."""
+    num_envs = min(num_envs, qpos.shape[1])
+    renderer = PixelRenderer(task, num_envs, size, samples_per_pixel=2)
+    views = render_trajectory(renderer, qpos[:, :num_envs], tile=False)
+    shown = camera[:, :num_envs] if camera.size else None
+    write_video(path, side_by_side_video(shown, views), fps=round(1.0 / CONTROL_DT))

@@ -282,8 +282,12 @@ class SHAC:
         return train, metrics
 
     # ---- evaluation ---------------------------------------------------------------------------
-    def evaluate(self, actor_params: dict, obs_stats: RunningStats, key: jax.Array) -> jax.Array:
-        """Deterministic policy (``tanh(μ)``) over one full episode per env: returns (N,)."""
+    def evaluate(self, actor_params: dict, obs_stats: RunningStats, key: jax.Array, record: bool = False):
+        """Deterministic policy (``tanh(μ)``) over one full episode per env: returns (N,).
+
+        With ``record=True`` also returns what a video needs, per step: ``qpos`` (T, N, nq) and,
+        for pixel observations, the newest frame the actor saw (T, N, H, W, 3).
+        """
         env = self.task.reset(key, self.config.num_envs)
         frames = self.first_frames(env)
 
@@ -293,12 +297,13 @@ class SHAC:
             env = self.task.step(env, jnp.tanh(action))
             frames = self.next_frames(frames, env)
             total = total + running * env.reward
-            return (env, frames, total, running * (1.0 - env.done)), None
+            shown = (env.data.qpos, frames[..., -3:]) if record else None
+            return (env, frames, total, running * (1.0 - env.done)), shown
 
         zeros = jnp.zeros(self.config.num_envs)
-        (_, _, total, _), _ = jax.lax.scan(step, (env, frames, zeros, zeros + 1.0), None,
-                                           length=self.task.episode_length)
-        return total
+        (_, _, total, _), shown = jax.lax.scan(step, (env, frames, zeros, zeros + 1.0), None,
+                                               length=self.task.episode_length)
+        return (total, *shown) if record else total
 
 
 def td_lambda_targets(reward: jax.Array, next_value: jax.Array, boundary: jax.Array,

@@ -1,0 +1,55 @@
+"""Seconds per training iteration and where they go (rollout forward / backward / actor backward /
+critic / rendering), plus the pixel encoder's analytic compute bound.
+
+    python benchmarks/iteration.py [--task cartpole_swingup] [--algo dva] [--preset cpu]
+                                   [--num-envs N] [--image-size S]
+
+Prints a markdown table. The encoder bound is its arithmetic (forward + backward over all h × N
+frames) divided by the float32 matmul rate this machine reaches; spec §6's PyTorch figure for
+2048 images at 84² (64 envs × 32 steps) is 7.65 s on a comparable 2-core CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", default="cartpole_swingup")
+    parser.add_argument("--algo", default="dva")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--num-envs", type=int)
+    parser.add_argument("--image-size", type=int)
+    args = parser.parse_args()
+
+    import jax
+
+    from dva.analysis.bench import machine_description, markdown_table
+    from dva.analysis.profile import encoder_flops, iteration_breakdown, matmul_flops_per_s
+    from dva.training import RunSpec, build, make_config
+
+    config = make_config(args.task, args.algo, args.preset, num_envs=args.num_envs, image_size=args.image_size)
+    spec = RunSpec(args.task, args.algo, args.preset, 0, dataclasses.asdict(config))
+    agent, _renderer = build(spec)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    state, _ = jax.jit(agent.iteration)(state)  # past the first iteration: realistic states
+    times = iteration_breakdown(agent, state)
+    print(f"{args.algo} on {args.task}, preset {args.preset}: {config.num_envs} envs × {config.horizon} steps"
+          + (f", {config.image_size}² × {config.frame_stack} frames" if config.observation == "pixels" else ""))
+    print(machine_description())
+    rows = [(part, f"{seconds:.3f}", f"{seconds / times['iteration']:.0%}") for part, seconds in times.items()]
+    print(markdown_table(["part", "seconds", "share of iteration"], rows))
+    if config.observation == "pixels":
+        images = config.num_envs * config.horizon
+        flops = encoder_flops(config.image_size, 3 * config.frame_stack, trunk=config.trunk)
+        rate = matmul_flops_per_s()
+        bound = images * (flops["forward"] + flops["backward"]) / rate
+        print(f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
+              f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images; "
+              f"measured actor backward {times['actor_backward']:.3f} s = {times['actor_backward'] / bound:.1f}× the bound")
+
+
+if __name__ == "__main__":
+    main()

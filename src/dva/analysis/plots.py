@@ -1,0 +1,75 @@
+"""Learning curves of one or more runs (``dva plot``): return vs wall-clock and vs env steps,
+runs of the same task and algorithm (different seeds) drawn as mean ± std."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display needed
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+METRICS = ("eval_return", "train_return")
+AXES = {"env_steps": "environment steps", "wall_time": "wall-clock time (s)"}
+
+
+def read_curve(run_dir: Path, metric: str) -> dict[str, np.ndarray]:
+    """The logged ``metric`` of a run with its env steps and wall-clock, rows where it is finite."""
+    path = Path(run_dir) / "progress.csv"
+    if not path.exists():
+        raise ValueError(f"{run_dir} has no progress.csv (is it a run directory?)")
+    with path.open() as f:
+        rows = [r for r in csv.DictReader(f) if r[metric] not in ("", "nan")]
+    return {key: np.array([float(r[key]) for r in rows]) for key in (metric, *AXES)}
+
+
+def run_label(run_dir: Path) -> str:
+    """``algo on task`` from the run's ``run.json`` (seeds of one label are averaged)."""
+    spec = json.loads((Path(run_dir) / "run.json").read_text())
+    return f"{spec['algo']} on {spec['task']} ({spec['preset']} preset)"
+
+
+def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
+    """Seeds interpolated onto a shared grid up to the shortest run: (x, mean, std)."""
+    curves = [c for c in curves if len(c[x_key]) > 0]
+    end = min(c[x_key][-1] for c in curves)
+    start = max(c[x_key][0] for c in curves)
+    grid = np.linspace(start, end, 100) if len(curves) > 1 else curves[0][x_key]
+    values = np.stack([np.interp(grid, c[x_key], c[metric]) for c in curves])
+    return grid, values.mean(0), values.std(0)
+
+
+def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return") -> list[Path]:
+    """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png``; returns their paths."""
+    if metric not in METRICS:
+        raise ValueError(f"metric {metric!r} is not allowed; use one of: {', '.join(METRICS)}")
+    groups: dict[str, list[dict[str, np.ndarray]]] = defaultdict(list)
+    for run_dir in run_dirs:
+        curve = read_curve(run_dir, metric)
+        if len(curve[metric]) == 0:
+            raise ValueError(f"{run_dir} has no {metric} logged yet")
+        groups[run_label(run_dir)].append(curve)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for x_key, x_label in AXES.items():
+        fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+        for label, curves in groups.items():
+            x, mean, std = mean_and_std(curves, x_key, metric)
+            line, = ax.plot(x, mean, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
+            if len(curves) > 1:
+                ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.25)
+        ax.set_xlabel(x_label)
+        ax.set_ylabel(metric.replace("_", " "))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = out_dir / f"{metric}_vs_{x_key}.png"
+        fig.savefig(path)
+        plt.close(fig)
+        written.append(path)
+    return written

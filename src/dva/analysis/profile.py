@@ -1,0 +1,80 @@
+"""Where a training iteration's time goes, and what the pixel encoder costs at best.
+
+:func:`iteration_breakdown` times each part of :meth:`SHAC.iteration` as its own jitted function
+(steady state, compile excluded). :func:`encoder_flops` counts the DrQ-v2 encoder's arithmetic so
+its measured time can be compared with the machine's matrix-multiply rate (the compute bound).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from dva.algorithms.shac import SHAC, TrainState
+from dva.analysis.bench import timed
+
+
+def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
+    """Seconds per part of one iteration at ``state``.
+
+    ``rollout_forward``: physics, rendering, frame stack, actor forward, critic bootstrap.
+    ``rollout_backward``: reverse pass of the rollout (for D.Va: the physics only, giving the
+    open-loop action gradient), i.e. value-and-gradient minus the forward.
+    ``actor_backward``: D.Va's batched actor VJP over all h × N observations (0 for 'full').
+    ``critic``: TD-λ targets and all critic minibatch steps. ``render``: rendering alone, h
+    batches of N frames (part of the rollout forward). ``iteration``: the whole jitted step.
+    """
+    cfg = agent.config
+    noise = jax.random.normal(jax.random.PRNGKey(1), (cfg.horizon, cfg.num_envs, agent.task.action_dim))
+    params = state.actor_params
+    times: dict[str, float] = {}
+    forward = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[0])
+    times["rollout_forward"] = timed(forward, params, state, noise)[1]
+    if cfg.gradient == "full":
+        grad = jax.jit(lambda p, s, n: jax.value_and_grad(agent.rollout, has_aux=True)(p, s, n)[1])
+        times["rollout_backward"] = timed(grad, params, state, noise)[1] - times["rollout_forward"]
+        times["actor_backward"] = 0.0
+    else:
+        offsets = jnp.zeros_like(noise)
+        action_grad = jax.jit(lambda p, s, n, w: jax.value_and_grad(
+            lambda w: agent.rollout(p, s, n, w), has_aux=True)(w))
+        _, physics_time, ((_, aux), grad) = timed(action_grad, params, state, noise, offsets)
+        times["rollout_backward"] = physics_time - times["rollout_forward"]
+        observations = aux[-1]["observations"]
+        actor_vjp = jax.jit(lambda p, o, n, g: jax.vjp(lambda p: agent.pre_tanh_action(p, o, n), p)[1](g)[0])
+        times["actor_backward"] = timed(actor_vjp, params, observations, noise, grad)[1]
+    trajectory = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[1][3])(params, state, noise)
+    critic = jax.jit(agent.critic_update)
+    times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
+    if agent.renderer is not None:
+        render = jax.jit(lambda q: jax.lax.map(lambda _: agent.renderer(q).sum(dtype=jnp.int32), jnp.arange(cfg.horizon)))
+        times["render"] = timed(render, state.env.data.qpos)[1]
+    else:
+        times["render"] = 0.0
+    iteration = jax.jit(agent.iteration)
+    times["iteration"] = timed(iteration, state)[1]
+    return times
+
+
+def encoder_flops(image_size: int, channels_in: int, channels: int = 32, trunk: int = 64) -> dict[str, float]:
+    """Multiply-adds × 2 of the DrQ-v2 encoder + trunk projection for one image.
+
+    ``forward``; ``backward`` = weight gradients of every layer + input gradients of every layer
+    but the first (the pixels need none), i.e. about twice the forward.
+    """
+    size, c_in, conv = image_size, channels_in, []
+    for stride in (2, 1, 1, 1):
+        size = (size - 3) // stride + 1
+        conv.append(2 * size * size * channels * 9 * c_in)
+        c_in = channels
+    projection = 2 * size * size * channels * trunk
+    forward = sum(conv) + projection
+    backward = sum(conv) + projection + sum(conv[1:]) + projection
+    return {"forward": float(forward), "backward": float(backward)}
+
+
+def matmul_flops_per_s(size: int = 2048) -> float:
+    """The float32 matrix-multiply rate this device reaches: a practical compute bound."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (size, size))
+    _, seconds, _ = timed(jax.jit(lambda a: a @ a), a)
+    return 2.0 * size**3 / seconds
