@@ -170,7 +170,11 @@ class SHAC:
             if cfg.gradient == "decoupled":
                 observation = jax.lax.stop_gradient(observation)
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
-            pre_tanh = self.pre_tanh_action(actor_params, observation, eps) + offset
+            if cfg.gradient == "decoupled":  # keep the actor's backward pass for actor_gradient
+                pre_tanh, actor_vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)
+            else:
+                pre_tanh, actor_vjp = self.pre_tanh_action(actor_params, observation, eps), None
+            pre_tanh = pre_tanh + offset
             env = task.step(env, jnp.tanh(pre_tanh))
             frames = self.next_frames(frames, env)
             next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
@@ -183,14 +187,14 @@ class SHAC:
             carry = (env, frames, jnp.where(env.done, 1.0, discount), jnp.where(env.done, 0.0, discounted_sum),
                      jnp.where(env.done, 0.0, episode_return))
             out = (ended, critic_obs, jax.lax.stop_gradient(env.reward), jax.lax.stop_gradient(next_value),
-                   env.done, finished_return, env.obs, observation, pre_tanh)
+                   env.done, finished_return, env.obs, observation, pre_tanh, actor_vjp)
             return carry, out
 
         num_envs = cfg.num_envs
         carry = (train.env, train.frames, jnp.ones(num_envs), jnp.zeros(num_envs), train.episode_return)
         offsets = jnp.zeros_like(noise) if action_offset is None else action_offset
         (env, frames, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, (noise, offsets))
-        ended, critic_obs, reward, next_value, done, finished_return, visited_obs, observations, actions = out
+        ended, critic_obs, reward, next_value, done, finished_return, visited_obs, observations, actions, vjps = out
         # Episodes still running at the end of the window bootstrap from the target critic.
         tail = jnp.where(done[-1], 0.0, discounted_sum + discount * value(env.obs))
         loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise))
@@ -198,8 +202,8 @@ class SHAC:
         trajectory = Trajectory(critic_obs=critic_obs, reward=reward, next_value=next_value, boundary=boundary)
         stats = {"finished_return_sum": finished_return.sum(), "finished_episodes": done.sum(),
                  "mean_reward": reward.mean()}
-        # The actor's inputs and pre-tanh actions per step (for Theorem 1's behaviour cloning).
-        taken = {"observations": observations, "actions": actions}
+        # The actor's inputs, pre-tanh actions and (decoupled) backward passes, per step.
+        taken = {"observations": observations, "actions": actions, "actor_vjp": vjps}
         return loss, (env, frames, episode_return, trajectory, visited_obs, stats, taken)
 
     def actor_gradient(self, actor_params: dict, train: TrainState, noise: jax.Array):
@@ -207,20 +211,19 @@ class SHAC:
 
         Decoupled: by Theorem 1 the gradient is ``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` with the open-loop
         action gradient ``∇_{a_t} L``. So the scan differentiates only the physics (with respect
-        to action offsets) and the actor — the pixel encoder above all — is differentiated once,
-        batched over all ``h × N`` observations, instead of step by step inside the scan.
+        to action offsets), and the actor — the pixel encoder above all — is differentiated
+        afterwards with the backward passes the rollout kept, all h steps in one batch, instead of
+        step by step inside the reverse scan (and without recomputing its forward pass).
         Full: plain reverse mode through everything.
         """
         if self.config.gradient == "full":
             (loss, aux), grads = jax.value_and_grad(self.rollout, has_aux=True)(actor_params, train, noise)
             return loss, aux, grads
-        frozen = jax.lax.stop_gradient(actor_params)
         offsets = jnp.zeros_like(noise)
         (loss, aux), action_grad = jax.value_and_grad(
-            lambda w: self.rollout(frozen, train, noise, w), has_aux=True)(offsets)
-        observations = aux[-1]["observations"]
-        _, actor_vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observations, noise), actor_params)
-        return loss, aux, actor_vjp(action_grad)[0]
+            lambda w: self.rollout(actor_params, train, noise, w), has_aux=True)(offsets)
+        per_step = jax.vmap(lambda vjp, g: vjp(g)[0])(aux[-1]["actor_vjp"], action_grad)
+        return loss, aux, jax.tree.map(lambda g: g.sum(0), per_step)
 
     # ---- the critic ---------------------------------------------------------------------------
     def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):

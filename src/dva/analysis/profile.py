@@ -20,7 +20,8 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     ``rollout_forward``: physics, rendering, frame stack, actor forward, critic bootstrap.
     ``rollout_backward``: reverse pass of the rollout (for D.Va: the physics only, giving the
     open-loop action gradient), i.e. value-and-gradient minus the forward.
-    ``actor_backward``: D.Va's batched actor VJP over all h × N observations (0 for 'full').
+    ``actor_backward``: D.Va's actor backward over all h × N observations, from the
+    backward passes the rollout kept (0 for 'full').
     ``critic``: TD-λ targets and all critic minibatch steps. ``render``: rendering alone, h
     batches of N frames (part of the rollout forward). ``iteration``: the whole jitted step.
     """
@@ -40,9 +41,8 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
             lambda w: agent.rollout(p, s, n, w), has_aux=True)(w))
         _, physics_time, ((_, aux), grad) = timed(action_grad, params, state, noise, offsets)
         times["rollout_backward"] = physics_time - times["rollout_forward"]
-        observations = aux[-1]["observations"]
-        actor_vjp = jax.jit(lambda p, o, n, g: jax.vjp(lambda p: agent.pre_tanh_action(p, o, n), p)[1](g)[0])
-        times["actor_backward"] = timed(actor_vjp, params, observations, noise, grad)[1]
+        actor_backward = jax.jit(lambda vjps, g: jax.vmap(lambda vjp, g: vjp(g)[0])(vjps, g))
+        times["actor_backward"] = timed(actor_backward, aux[-1]["actor_vjp"], grad)[1]
     trajectory = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[1][3])(params, state, noise)
     critic = jax.jit(agent.critic_update)
     times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
