@@ -83,7 +83,7 @@ class TrainCommand:
     """Continue the run in --run-dir from its last checkpoint."""
     report: bool = True
     """At the end, write the return plots and a video of the policy into the run directory."""
-    eval_every: int = 25
+    eval_every: int = 50
     checkpoint_every: int = 25
     num_envs: int | None = None
     """Override the preset's number of parallel envs."""
@@ -121,17 +121,22 @@ class EvalCommand:
     seed: int = 0
 
     def run(self) -> None:
+        import jax
         import numpy as np
 
+        from dva.analysis.reference import random_policy_returns
         from dva.tasks import make_task
         from dva.training import evaluate_run
         from dva.visualize import policy_video
 
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
+        task = make_task(spec.task)
+        random = random_policy_returns(task, jax.random.PRNGKey(self.seed), len(returns))
         print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
-              f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f})")
+              f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "
+              f"random actions: {np.mean(random):.1f} ± {np.std(random):.1f}")
         if self.video is not None:
-            policy_video(self.video, make_task(spec.task), qpos, camera, self.video_envs, self.video_size)
+            policy_video(self.video, task, qpos, camera, self.video_envs, self.video_size)
             print(f"wrote {self.video}")
 
 
