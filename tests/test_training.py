@@ -29,6 +29,7 @@ def test_train_resume_continues_the_curve(tmp_path):
     train("cartpole_swingup", iterations=2, run_dir=run_dir, resume=True, eval_every=3, checkpoint_every=2)
     resumed = rows(run_dir)
     assert [int(r["iteration"]) for r in resumed] == [0, 1, 2, 3, 4, 5]
+    assert resumed[4]["eval_return"] == "" and resumed[5]["eval_return"] != ""  # runs end on an evaluation
     times = [float(r["wall_time"]) for r in resumed]
     assert times == sorted(times)  # the clock continues across the resume
 

@@ -18,6 +18,29 @@ from dva.tasks import Task
 DEFAULT_IMAGE_SIZE = 84
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 1024
 MAX_DEPTH = 30.0  # metres; farther surfaces read as this
+SKY_COLOR = (0.6, 0.64, 0.7)  # background RGB in [0, 1]
+
+
+def check_image_size(width: int, height: int) -> None:
+    """A clear error unless both sides are ints in [MIN_IMAGE_SIZE, MAX_IMAGE_SIZE]."""
+    for label, value in (("width", width), ("height", height)):
+        if not isinstance(value, int) or not MIN_IMAGE_SIZE <= value <= MAX_IMAGE_SIZE:
+            raise ValueError(
+                f"image {label} {value!r} is not allowed; use an int in [{MIN_IMAGE_SIZE}, {MAX_IMAGE_SIZE}]"
+            )
+
+
+def scene_poses(task: Task, qpos: jax.Array) -> mjx.Data:
+    """Forward kinematics (JAX, differentiable) of a batch of ``qpos``: geom and camera poses."""
+    model = task.model
+    data0 = mjx.make_data(model)
+
+    def one(q: jax.Array) -> mjx.Data:
+        d = mjx.kinematics(model, data0.replace(qpos=q))
+        d = mjx.com_pos(model, d)  # subtree centres of mass, for the tracking cameras
+        return mjx.camlight(model, d)
+
+    return jax.vmap(one)(qpos)
 
 
 class PixelRenderer:
@@ -37,11 +60,7 @@ class PixelRenderer:
         samples_per_pixel: int = 1,
     ) -> None:
         height = width if height is None else height
-        for label, value in (("width", width), ("height", height)):
-            if not isinstance(value, int) or not MIN_IMAGE_SIZE <= value <= MAX_IMAGE_SIZE:
-                raise ValueError(
-                    f"image {label} {value!r} is not allowed; use an int in [{MIN_IMAGE_SIZE}, {MAX_IMAGE_SIZE}]"
-                )
+        check_image_size(width, height)
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
@@ -54,21 +73,9 @@ class PixelRenderer:
         self._context = mjx.create_render_context(
             mjm=mjm, nworld=num_envs, cam_res=(width, height), render_rgb=True, render_depth=depth,
             cam_active=[task.camera], use_textures=True, use_shadows=False,
-            samples_per_pixel=samples_per_pixel, background_color=(0.6, 0.64, 0.7, 1.0),
+            samples_per_pixel=samples_per_pixel, background_color=(*SKY_COLOR, 1.0),
         )
         self._camera_slot = 0  # only the pixel camera is active in the context
-
-    def poses(self, qpos: jax.Array) -> mjx.Data:
-        """Forward kinematics (JAX) of a batch of ``qpos``: geom and camera poses."""
-        model = self.task.model
-        data0 = mjx.make_data(model)
-
-        def one(q: jax.Array) -> mjx.Data:
-            d = mjx.kinematics(model, data0.replace(qpos=q))
-            d = mjx.com_pos(model, d)  # subtree centres of mass, for the tracking cameras
-            return mjx.camlight(model, d)
-
-        return jax.vmap(one)(qpos)
 
     def __call__(self, qpos: jax.Array) -> jax.Array | tuple[jax.Array, jax.Array]:
         """Render ``qpos`` of shape ``(num_envs, nq)``.
@@ -80,7 +87,7 @@ class PixelRenderer:
             raise ValueError(
                 f"qpos has shape {tuple(qpos.shape)}; this renderer needs ({self.num_envs}, {self.task.mj_model.nq})"
             )
-        poses = self.poses(jax.lax.stop_gradient(qpos))
+        poses = scene_poses(self.task, jax.lax.stop_gradient(qpos))
         warp_data = self._template.replace(
             qpos=poses.qpos, geom_xpos=poses.geom_xpos, geom_xmat=poses.geom_xmat,
             cam_xpos=poses.cam_xpos, cam_xmat=poses.cam_xmat,

@@ -226,6 +226,12 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
             if total is None:  # a time budget: tqdm cannot know the ETA, so show what is left
                 postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(max(0.0, minutes * 60 - (time.perf_counter() - start))))
             bar.set_postfix(postfix)
+        last = rows[-1]
+        if last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):  # end on an evaluation
+            last["eval_return"] = float(np.mean(evaluate(state.actor_params, state.obs_stats,
+                                                         jax.random.PRNGKey(10_000 + int(state.iteration)))))
+            _rewrite_log(run_dir / "progress.csv", rows)
+            writer.add_scalar("eval_return", last["eval_return"], int(last["env_steps"]))
     finally:
         bar.close()
         writer.close()
