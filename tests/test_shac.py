@@ -108,3 +108,31 @@ def test_batched_actor_gradient_equals_reverse_mode_through_the_rollout(setup):
     direct_loss, direct = jax.value_and_grad(lambda p: shac.rollout(p, train, noise)[0])(train.actor_params)
     assert float(loss) == pytest.approx(float(direct_loss), rel=1e-6)
     np.testing.assert_allclose(flat(fast), flat(direct), rtol=1e-4, atol=1e-6 * np.abs(flat(direct)).max())
+
+
+def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
+    """Through pixels: the second action depends on the first state only via the rendered frame
+    (and the physics in between); visual SHAC differentiates that path, D.Va cuts it exactly."""
+    from dva.rendering import PixelRenderer
+    from dva.soft_rendering import SoftRenderer
+
+    task = make_task("cartpole_swingup")
+    noise = jax.random.normal(jax.random.PRNGKey(1), (3, NUM_ENVS, 1))
+
+    def second_action_gradient(gradient: str, renderer) -> np.ndarray:
+        config = SHACConfig(observation="pixels", gradient=gradient, num_envs=NUM_ENVS, horizon=3, image_size=16,
+                            actor_hidden=(8,), critic_hidden=(8,), critic_minibatches=2)
+        shac = SHAC(task, config, renderer)
+        train = jax.jit(shac.init)(jax.random.PRNGKey(0))
+
+        def second_action(qpos_offset):
+            data = train.env.data.replace(qpos=train.env.data.qpos + qpos_offset)
+            return shac.rollout(train.actor_params, train.replace(env=train.env.replace(data=data)), noise)[1][-1]["actions"][1].sum()
+
+        return np.asarray(jax.jit(jax.grad(second_action))(jnp.zeros_like(train.env.data.qpos)))
+
+    assert np.abs(second_action_gradient("full", SoftRenderer(task, NUM_ENVS, 16))).max() > 0
+    assert np.abs(second_action_gradient("decoupled", PixelRenderer(task, NUM_ENVS, 16))).max() == 0.0
+    with pytest.raises(ValueError, match="needs a differentiable renderer"):
+        SHAC(task, SHACConfig(observation="pixels", gradient="full", num_envs=NUM_ENVS),
+             PixelRenderer(task, NUM_ENVS, 16))

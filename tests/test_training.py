@@ -53,5 +53,4 @@ def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):
         make_config("walker", "dva", "cpu")
     with pytest.raises(ValueError, match="unknown preset .gpu."):
         make_config("cartpole_swingup", "dva", "gpu")
-    with pytest.raises(ValueError, match="needs a differentiable renderer"):
-        make_config("cartpole_swingup", "dva", "cpu", gradient="full")
+    assert make_config("ant", "shac-pixels", "paper").horizon == 8  # visual SHAC's own horizon

@@ -50,6 +50,8 @@ class PixelRenderer:
     Keep the renderer object alive while jitted functions that call it are in use.
     """
 
+    differentiable = False  # pixels carry no gradient to qpos (D.Va needs none)
+
     def __init__(
         self,
         task: Task,

@@ -36,8 +36,11 @@ class SoftRenderer:
 
     Returns float RGB in [0, 255] (float64 under ``jax.enable_x64``) (``(num_envs, height, width, 3)``): the pixel encoder takes it
     like the uint8 frames of :class:`~dva.rendering.PixelRenderer`, with gradients attached.
-    ``softness`` is the silhouette width in pixels.
+    ``softness`` is the silhouette width in pixels. The render is rematerialised in the backward
+    pass (``jax.checkpoint``): a rollout keeps only poses per step, not per-pixel intermediates.
     """
+
+    differentiable = True
 
     def __init__(self, task: Task, num_envs: int, width: int = 84, height: int | None = None,
                  softness: float = 0.5) -> None:
@@ -76,8 +79,9 @@ class SoftRenderer:
             raise ValueError(f"qpos has shape {tuple(qpos.shape)}; this renderer needs "
                              f"({self.num_envs}, {self.task.mj_model.nq})")
         poses = scene_poses(self.task, qpos)
-        images = jax.vmap(self._render_one)(poses.cam_xpos[:, self._camera], poses.cam_xmat[:, self._camera],
-                                            poses.geom_xpos, poses.geom_xmat)
+        render = jax.checkpoint(jax.vmap(self._render_one))
+        images = render(poses.cam_xpos[:, self._camera], poses.cam_xmat[:, self._camera],
+                        poses.geom_xpos, poses.geom_xmat)
         return images.reshape(self.num_envs, self.height, self.width, 3) * 255.0
 
     def _render_one(self, cam_pos, cam_mat, geom_pos, geom_mat) -> jax.Array:

@@ -90,5 +90,5 @@ def policy_video(path: Path, task: Task, qpos: np.ndarray, camera: np.ndarray, n
     num_envs = min(num_envs, qpos.shape[1])
     renderer = PixelRenderer(task, num_envs, size, samples_per_pixel=2)
     views = render_trajectory(renderer, qpos[:, :num_envs], tile=False)
-    shown = camera[:, :num_envs] if camera.size else None
+    shown = np.clip(camera[:, :num_envs], 0, 255).astype(np.uint8) if camera.size else None  # float if soft-rendered
     write_video(path, side_by_side_video(shown, views), fps=round(1.0 / CONTROL_DT))

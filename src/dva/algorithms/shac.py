@@ -2,7 +2,9 @@
 
 * **D.Va**: ``observation="pixels"``, ``gradient="decoupled"`` (pixels enter via stop_gradient),
 * **SHAC**: ``observation="state"``, ``gradient="full"``,
-* **DPG on state** (paper Fig 13): ``observation="state"``, ``gradient="decoupled"``.
+* **DPG on state** (paper Fig 13): ``observation="state"``, ``gradient="decoupled"``,
+* **visual SHAC** (the paper's baseline): ``observation="pixels"``, ``gradient="full"``, pixels
+  from the differentiable :class:`~dva.soft_rendering.SoftRenderer`.
 
 One :meth:`SHAC.iteration` (jit it) rolls the policy out for ``horizon`` steps over ``num_envs``
 environments (physics, rendering, frame stack, sampling), differentiates the actor loss
@@ -22,6 +24,7 @@ from flax import struct
 
 from dva.networks import Actor, Critic, RunningStats
 from dva.rendering import PixelRenderer, push_frame, reset_frame_stack
+from dva.soft_rendering import SoftRenderer
 from dva.tasks import EnvState, Task
 
 MAX_ACTOR_GRAD_NORM = 1e8  # above this the run stops (ref. code)
@@ -57,9 +60,6 @@ class SHACConfig:
             raise ValueError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.gradient not in ("decoupled", "full"):
             raise ValueError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
-        if self.observation == "pixels" and self.gradient == "full":
-            raise ValueError("gradient 'full' through pixels needs a differentiable renderer; "
-                             "the Warp renderer is not differentiable — use gradient='decoupled' (D.Va)")
         if (self.num_envs * self.horizon) % self.critic_minibatches:
             raise ValueError(f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
                              f"{self.critic_minibatches} critic minibatches")
@@ -75,7 +75,7 @@ class TrainState(struct.PyTreeNode):
     critic_opt_state: optax.OptState
     obs_stats: RunningStats  # running mean/std of the state observation
     env: EnvState
-    frames: jax.Array  # (N, H, W, 3·k) uint8 stacked frames; (N, 0) for state observations
+    frames: jax.Array  # (N, H, W, 3·k) stacked frames (uint8; float from SoftRenderer); (N, 0) for state
     episode_return: jax.Array  # (N,) undiscounted return of the running episodes
     key: jax.Array
     iteration: jax.Array
@@ -93,10 +93,13 @@ class Trajectory(struct.PyTreeNode):
 class SHAC:
     """The trainer; see the module docstring. ``renderer`` is required for pixel observations."""
 
-    def __init__(self, task: Task, config: SHACConfig, renderer: PixelRenderer | None = None) -> None:
+    def __init__(self, task: Task, config: SHACConfig, renderer: PixelRenderer | SoftRenderer | None = None) -> None:
         if config.observation == "pixels":
             if renderer is None or renderer.num_envs != config.num_envs:
-                raise ValueError("pixel observations need a PixelRenderer with num_envs == config.num_envs")
+                raise ValueError("pixel observations need a renderer with num_envs == config.num_envs")
+            if config.gradient == "full" and not renderer.differentiable:
+                raise ValueError("gradient 'full' through pixels needs a differentiable renderer (SoftRenderer); "
+                                 "the Warp renderer is not — use gradient='decoupled' (D.Va)")
         self.task, self.config, self.renderer = task, config, renderer
         self.actor = Actor(task.action_dim, config.actor_hidden, pixels=config.observation == "pixels",
                            trunk=config.trunk)
