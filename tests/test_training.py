@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import csv
+import json
 import shutil
 
 import pytest
 
-from dva.training import make_config, train
+from dva.training import TrainingDiverged, checkpoint_manager, make_config, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
 
@@ -54,3 +55,15 @@ def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):
     with pytest.raises(ValueError, match="unknown preset .gpu."):
         make_config("cartpole_swingup", "dva", "gpu")
     assert make_config("ant", "shac-pixels", "paper").horizon == 8  # visual SHAC's own horizon
+
+
+def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
+    run_dir = tmp_path / "run"
+    train("cartpole_swingup", "shac", "cpu", iterations=2, run_dir=run_dir, checkpoint_every=1, **SMALL)
+    spec = json.loads((run_dir / "run.json").read_text())
+    spec["config"]["max_grad_norm"] = 1e-9  # every gradient now counts as exploding
+    (run_dir / "run.json").write_text(json.dumps(spec))
+    with pytest.raises(TrainingDiverged, match=r"actor gradient norm .* at iteration 3 is NaN or above 1e-09"):
+        train("cartpole_swingup", iterations=5, run_dir=run_dir, resume=True, checkpoint_every=1)
+    assert checkpoint_manager(run_dir).latest_step() == 2
+    assert [int(r["iteration"]) for r in rows(run_dir)] == [0, 1, 2]

@@ -215,7 +215,7 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
             if not metrics["healthy"]:
                 raise TrainingDiverged(
                     f"actor gradient norm {metrics['actor_grad_norm']:.3g} at iteration {int(state.iteration)} "
-                    f"is NaN or above 1e8; the last good checkpoint is in {manager.directory}")
+                    f"is NaN or above {cfg.max_grad_norm:.3g}; the last good checkpoint is in {manager.directory}")
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
             n = int(state.iteration)

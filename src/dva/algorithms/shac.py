@@ -27,8 +27,6 @@ from dva.rendering import PixelRenderer, push_frame, reset_frame_stack
 from dva.soft_rendering import SoftRenderer
 from dva.tasks import EnvState, Task
 
-MAX_ACTOR_GRAD_NORM = 1e8  # above this the run stops (ref. code)
-
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig:
@@ -45,6 +43,7 @@ class SHACConfig:
     final_lr: float = 1e-5
     betas: tuple[float, float] = (0.7, 0.95)
     grad_clip: float = 1.0
+    max_grad_norm: float = 1e8  # an actor gradient norm above this (or NaN) stops training (ref. code)
     target_alpha: float = 0.2
     critic_iterations: int = 16
     critic_minibatches: int = 4
@@ -266,7 +265,7 @@ class SHAC:
         loss, aux, grads = self.actor_gradient(train.actor_params, train, noise)
         env, frames, episode_return, trajectory, visited_obs, stats, _ = aux
         grad_norm = optax.tree.norm(grads)
-        healthy = jnp.isfinite(grad_norm) & (grad_norm <= MAX_ACTOR_GRAD_NORM)
+        healthy = jnp.isfinite(grad_norm) & (grad_norm <= cfg.max_grad_norm)
         updates, actor_opt_state = self.actor_opt.update(grads, train.actor_opt_state, train.actor_params)
         actor_params = optax.apply_updates(train.actor_params, updates)
         # A bad gradient leaves the actor untouched; the training loop stops on it.
