@@ -75,3 +75,16 @@ def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
         plot_runs([tmp_path], tmp_path, "loss")
     with pytest.raises(ValueError, match="has no progress.csv"):
         plot_runs([tmp_path], tmp_path)
+
+
+def test_analyze_gradients_writes_table_and_figure(tmp_path, capsys):
+    main(["analyze", "gradients", "--task", "cartpole_swingup", "--iterations", "4", "--every", "2",
+          "--num-envs", "4", "--horizon", "8", "--out", str(tmp_path)])
+    out_dir = tmp_path / "gradients_cartpole_swingup"
+    lines = (out_dir / "apg_vs_dpg.csv").read_text().splitlines()
+    assert lines[0] == "iteration,cosine,apg_norm,dpg_norm,train_return" and len(lines) == 1 + 3  # its 0, 2, 4
+    for line in lines[1:]:
+        _, cosine, apg_norm, dpg_norm, _ = map(float, line.split(","))
+        assert -1.0 <= cosine <= 1.0 and apg_norm > 0 and dpg_norm > 0
+        assert cosine < 1.0 - 1e-6  # different gradients: the observation path contributes
+    assert iio.imread(out_dir / "apg_vs_dpg.png").ndim == 3

@@ -1,4 +1,4 @@
-"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``."""
+"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``, ``analyze``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -156,12 +156,40 @@ class PlotCommand:
             print(f"wrote {path}")
 
 
+@dataclasses.dataclass
+class AnalyzeCommand:
+    """Analyses behind the method. ``gradients`` (paper Fig 3): along a SHAC run with state
+    observations, cosine similarity and norms of the full gradient (APG) vs the decoupled one
+    (DPG) at the same parameters; writes apg_vs_dpg.csv and .png."""
+
+    analysis: tyro.conf.Positional[Literal["gradients"]]
+    task: str = "hopper"
+    iterations: int = 300
+    """SHAC iterations to train (CPU preset)."""
+    every: int = 10
+    """Compare the two gradients every this many iterations."""
+    seed: int = 0
+    out: Path = Path("analysis")
+    num_envs: int | None = None
+    horizon: int | None = None
+
+    def run(self) -> None:
+        from dva.analysis.gradients import compare_gradients, write_gradient_report
+
+        rows = compare_gradients(self.task, self.iterations, self.every, self.seed,
+                                 num_envs=self.num_envs, horizon=self.horizon)
+        title = f"SHAC on {self.task} (state observations, seed {self.seed}): APG vs DPG"
+        for path in write_gradient_report(rows, self.out / f"gradients_{self.task}", title):
+            print(f"wrote {path}")
+
+
 COMMANDS = {
     "tasks": TasksCommand,
     "render": RenderCommand,
     "train": TrainCommand,
     "eval": EvalCommand,
     "plot": PlotCommand,
+    "analyze": AnalyzeCommand,
 }
 
 
