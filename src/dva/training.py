@@ -192,12 +192,18 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
 
     step_fn = jax.jit(agent.iteration, donate_argnums=0)
     evaluate = jax.jit(agent.evaluate)
+
+    def eval_return(state: TrainState) -> float:
+        """Mean deterministic return, one full episode per env, with a key per iteration."""
+        key = jax.random.PRNGKey(10_000 + int(state.iteration))
+        return float(np.mean(evaluate(state.actor_params, state.obs_stats, key)))
+
     writer = _tensorboard(run_dir)
     first = int(state.iteration)
     last_train_return = float("nan")
     if not rows:  # the untrained policy's return: where the curve starts
         row = {"iteration": 0, "env_steps": 0, "wall_time": 0.0, "train_return": float("nan"),
-               "eval_return": float(np.mean(evaluate(state.actor_params, state.obs_stats, jax.random.PRNGKey(10_000)))),
+               "eval_return": eval_return(state),
                "actor_loss": "", "actor_grad_norm": "", "critic_loss": "", "iteration_time": ""}
         rows.append(row)
         _log(run_dir, writer, row)
@@ -219,12 +225,10 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
             n = int(state.iteration)
-            eval_return = ""
-            if n % eval_every == 0:
-                eval_return = float(np.mean(evaluate(state.actor_params, state.obs_stats, jax.random.PRNGKey(10_000 + n))))
+            evaluation = eval_return(state) if n % eval_every == 0 else ""
             row = {"iteration": n, "env_steps": n * cfg.num_envs * cfg.horizon,
                    "wall_time": round(offset_time + time.perf_counter() - start, 3),
-                   "train_return": last_train_return, "eval_return": eval_return,
+                   "train_return": last_train_return, "eval_return": evaluation,
                    "actor_loss": float(metrics["actor_loss"]), "actor_grad_norm": float(metrics["actor_grad_norm"]),
                    "critic_loss": float(metrics["critic_loss"]), "iteration_time": round(iteration_time, 4)}
             rows.append(row)
@@ -238,8 +242,7 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
             bar.set_postfix(postfix)
         last = rows[-1]
         if last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):  # end on an evaluation
-            last["eval_return"] = float(np.mean(evaluate(state.actor_params, state.obs_stats,
-                                                         jax.random.PRNGKey(10_000 + int(state.iteration)))))
+            last["eval_return"] = eval_return(state)
             _rewrite_log(run_dir / "progress.csv", rows)
             writer.add_scalar("eval_return", last["eval_return"], int(last["env_steps"]))
     finally:
