@@ -12,7 +12,6 @@ frames) divided by the float32 matmul rate this machine reaches; spec §6's PyTo
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 
 def main() -> None:
@@ -24,18 +23,12 @@ def main() -> None:
     parser.add_argument("--image-size", type=int)
     args = parser.parse_args()
 
-    import jax
-
     from dva.analysis.bench import machine_description, markdown_table
-    from dva.analysis.profile import encoder_flops, iteration_breakdown, matmul_flops_per_s
-    from dva.training import RunSpec, build, make_config
+    from dva.analysis.breakdown import measure_iteration
+    from dva.analysis.profile import encoder_flops, matmul_flops_per_s
 
-    config = make_config(args.task, args.algo, args.preset, num_envs=args.num_envs, image_size=args.image_size)
-    spec = RunSpec(args.task, args.algo, args.preset, 0, dataclasses.asdict(config))
-    agent, _renderer = build(spec)
-    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
-    state, _ = jax.jit(agent.iteration)(state)  # past the first iteration: realistic states
-    times = iteration_breakdown(agent, state)
+    config, times = measure_iteration(args.task, args.algo, args.preset, num_envs=args.num_envs,
+                                      image_size=args.image_size)
     print(f"{args.algo} on {args.task}, preset {args.preset}: {config.num_envs} envs × {config.horizon} steps"
           + (f", {config.image_size}² × {config.frame_stack} frames" if config.observation == "pixels" else ""))
     print(machine_description())

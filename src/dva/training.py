@@ -70,6 +70,10 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> SHACConfig:
 class TrainingDiverged(RuntimeError):
     """The actor gradient was NaN or above the limit; the last good checkpoint is kept."""
 
+    def __init__(self, message: str, iteration: int, grad_norm: float) -> None:
+        super().__init__(message)
+        self.iteration, self.grad_norm = iteration, grad_norm
+
 
 @dataclasses.dataclass
 class RunSpec:
@@ -156,8 +160,10 @@ CSV_FIELDS = ["iteration", "env_steps", "wall_time", "train_return", "eval_retur
 
 def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iterations: int | None = None,
           minutes: float | None = None, run_dir: Path = Path("runs/latest"), resume: bool = False,
-          eval_every: int = 50, checkpoint_every: int = 25, **overrides) -> Path:
+          eval_every: int | None = 50, checkpoint_every: int = 25, **overrides) -> Path:
     """Train and return the run directory (logs, checkpoints, ``run.json``).
+
+    Evaluates at iteration 0, every ``eval_every`` iterations and at the end (never when None).
 
     ``minutes`` bounds the whole call, set-up and compilation included; so does the logged
     wall-clock (a fair clock for comparing methods).
@@ -201,9 +207,9 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
     writer = _tensorboard(run_dir)
     first = int(state.iteration)
     last_train_return = float("nan")
-    if not rows:  # the untrained policy's return: where the curve starts
+    if not rows:  # the untrained policy's return: where the curve starts (no evaluation: nan)
         row = {"iteration": 0, "env_steps": 0, "wall_time": 0.0, "train_return": float("nan"),
-               "eval_return": eval_return(state),
+               "eval_return": eval_return(state) if eval_every else float("nan"),
                "actor_loss": "", "actor_grad_norm": "", "critic_loss": "", "iteration_time": ""}
         rows.append(row)
         _log(run_dir, writer, row)
@@ -219,13 +225,14 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
             metrics = jax.device_get(metrics)  # one small transfer per iteration, for the log
             iteration_time = time.perf_counter() - tick
             if not metrics["healthy"]:
+                norm, n = float(metrics["actor_grad_norm"]), int(state.iteration)
                 raise TrainingDiverged(
-                    f"actor gradient norm {metrics['actor_grad_norm']:.3g} at iteration {int(state.iteration)} "
-                    f"is NaN or above {cfg.max_grad_norm:.3g}; the last good checkpoint is in {manager.directory}")
+                    f"actor gradient norm {norm:.3g} at iteration {n} is NaN or above {cfg.max_grad_norm:.3g}; "
+                    f"the last good checkpoint is in {manager.directory}", n, norm)
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
             n = int(state.iteration)
-            evaluation = eval_return(state) if n % eval_every == 0 else ""
+            evaluation = eval_return(state) if eval_every and n % eval_every == 0 else ""
             row = {"iteration": n, "env_steps": n * cfg.num_envs * cfg.horizon,
                    "wall_time": round(offset_time + time.perf_counter() - start, 3),
                    "train_return": last_train_return, "eval_return": evaluation,
@@ -241,7 +248,7 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
                 postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(max(0.0, minutes * 60 - (time.perf_counter() - start))))
             bar.set_postfix(postfix)
         last = rows[-1]
-        if last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):  # end on an evaluation
+        if eval_every and last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):  # end on an evaluation
             last["eval_return"] = eval_return(state)
             _rewrite_log(run_dir / "progress.csv", rows)
             writer.add_scalar("eval_return", last["eval_return"], int(last["env_steps"]))

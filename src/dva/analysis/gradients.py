@@ -4,7 +4,6 @@ parameters, state and noise — cosine similarity and norms."""
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from dva.algorithms.shac import SHAC  # noqa: E402
+from dva.analysis.bench import write_csv  # noqa: E402
 from dva.tasks import make_task  # noqa: E402
 from dva.training import make_config  # noqa: E402
 
@@ -56,12 +56,7 @@ def compare_gradients(task_name: str, iterations: int, every: int, seed: int = 0
 
 def write_gradient_report(rows: list[dict[str, float]], out_dir: Path, title: str) -> list[Path]:
     """``apg_vs_dpg.csv`` and ``apg_vs_dpg.png`` (cosine similarity; both norms, log scale)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    table = out_dir / "apg_vs_dpg.csv"
-    with table.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
+    table = write_csv(out_dir / "apg_vs_dpg.csv", [{key: row[key] for key in FIELDS} for row in rows])
     iterations = [r["iteration"] for r in rows]
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(6, 5.5), dpi=120, sharex=True)
     top.plot(iterations, [r["cosine"] for r in rows], marker=".")

@@ -18,6 +18,7 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     """Seconds per part of one iteration at ``state``.
 
     ``rollout_forward``: physics, rendering, frame stack, actor forward, critic bootstrap.
+    ``actor_forward``: the actor alone on the rollout's h × N observations, one batch per step.
     ``rollout_backward``: reverse pass of the rollout (for D.Va: the physics only, giving the
     open-loop action gradient), i.e. value-and-gradient minus the forward.
     ``actor_backward``: D.Va's actor backward over all h × N observations, from the
@@ -31,6 +32,9 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     times: dict[str, float] = {}
     forward = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[0])
     times["rollout_forward"] = timed(forward, params, state, noise)[1]
+    observations = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[1][-1]["observations"])(params, state, noise)
+    actor_forward = jax.jit(lambda p, obs: jax.lax.map(lambda o: agent.actor.apply(p, o)[0].sum(), obs))
+    times["actor_forward"] = timed(actor_forward, params, observations)[1]
     if cfg.gradient == "full":
         grad = jax.jit(lambda p, s, n: jax.value_and_grad(agent.rollout, has_aux=True)(p, s, n)[1])
         times["rollout_backward"] = timed(grad, params, state, noise)[1] - times["rollout_forward"]
@@ -78,3 +82,20 @@ def matmul_flops_per_s(size: int = 2048) -> float:
     a = jax.random.normal(jax.random.PRNGKey(0), (size, size))
     _, seconds, _ = timed(jax.jit(lambda a: a @ a), a)
     return 2.0 * size**3 / seconds
+
+
+def per_million_steps(times: dict[str, float], num_envs: int, horizon: int) -> dict[str, float]:
+    """Paper Fig 5: seconds per 1M env steps in each part of an iteration, from
+    :func:`iteration_breakdown`'s ``times``. The parts were timed separately; ``other`` is what
+    the whole iteration took beyond their sum (0 when fusion made it faster than the parts)."""
+    parts = {
+        "simulation forward": max(times["rollout_forward"] - times["render"] - times["actor_forward"], 0.0),
+        "simulation backward": times["rollout_backward"],
+        "rendering": times["render"],
+        "actor forward": times["actor_forward"],
+        "actor backward": times["actor_backward"],
+        "critic fitting": times["critic"],
+    }
+    parts["other"] = max(times["iteration"] - sum(parts.values()), 0.0)
+    iterations_per_million = 1e6 / (num_envs * horizon)
+    return {part: seconds * iterations_per_million for part, seconds in parts.items()}

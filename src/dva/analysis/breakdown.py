@@ -1,0 +1,57 @@
+"""Paper Fig 5: where D.Va's time goes per 1M environment steps — simulation (forward and
+backward), rendering, actor forward/backward, critic fitting."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from dva.algorithms.shac import SHACConfig  # noqa: E402
+from dva.analysis.bench import markdown_table, write_csv  # noqa: E402
+from dva.analysis.profile import iteration_breakdown, per_million_steps  # noqa: E402
+from dva.training import RunSpec, build, make_config  # noqa: E402
+
+
+def measure_iteration(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0,
+                      **overrides) -> tuple[SHACConfig, dict[str, float]]:
+    """The configuration and :func:`iteration_breakdown` of ``algo`` on ``task``, timed after one
+    iteration (so the state is a realistic one, not the reset)."""
+    config = make_config(task, algo, preset, **overrides)
+    agent, _ = build(RunSpec(task, algo, preset, seed, dataclasses.asdict(config)))  # agent keeps the renderer
+    state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
+    state, _ = jax.jit(agent.iteration)(state)
+    return config, iteration_breakdown(agent, state)
+
+
+def write_breakdown_report(config: SHACConfig, times: dict[str, float], out_dir: Path,
+                           title: str) -> tuple[list[Path], str]:
+    """``breakdown.csv``, ``breakdown.md`` and ``breakdown.png`` (one stacked bar, seconds per 1M steps)."""
+    per_million = per_million_steps(times, config.num_envs, config.horizon)
+    total = sum(per_million.values())
+    rows = [{"part": part, "seconds_per_million_steps": seconds, "share": seconds / total}
+            for part, seconds in per_million.items()]
+    table = write_csv(out_dir / "breakdown.csv", rows)
+    markdown = markdown_table(["part", "s per 1M steps", "share"],
+                              [(r["part"], f"{r['seconds_per_million_steps']:.0f}", f"{r['share']:.0%}") for r in rows]
+                              + [("total", f"{total:.0f}", "100%")])
+    (out_dir / "breakdown.md").write_text(f"{title}\n\n{markdown}\n")
+    fig, ax = plt.subplots(figsize=(8, 2.6), dpi=120)
+    left = 0.0
+    for row in rows:
+        ax.barh([0], [row["seconds_per_million_steps"]], left=left, label=f"{row['part']} ({row['share']:.0%})")
+        left += row["seconds_per_million_steps"]
+    ax.set_yticks([])
+    ax.set_xlabel("seconds per 1M environment steps")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, ncol=4, loc="upper center", bbox_to_anchor=(0.5, -0.35))
+    fig.tight_layout()
+    figure = out_dir / "breakdown.png"
+    fig.savefig(figure, bbox_inches="tight")
+    plt.close(fig)
+    return [table, out_dir / "breakdown.md", figure], markdown

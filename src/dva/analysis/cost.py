@@ -1,0 +1,118 @@
+"""Paper Fig 10 and Table 1: what one actor gradient costs, D.Va vs visual SHAC.
+
+Both compute the same policy gradient's inputs from the same rollout; visual SHAC differentiates
+through the (differentiable) renderer and every step's encoder inside the reverse scan, D.Va
+only through the physics, then runs the encoder backward once over all h × N frames. Measured
+per task in one process: backward seconds (gradient minus forward, steady state) and the peak
+memory XLA plans for the gradient computation (its buffer-liveness peak: arguments, outputs
+and temporaries; on CPU the process's resident set would mix all tasks measured before).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import jax
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from dva.algorithms.shac import SHAC, TrainState  # noqa: E402
+from dva.analysis.bench import markdown_table, timed, write_csv  # noqa: E402
+from dva.training import RunSpec, build, make_config  # noqa: E402
+
+COMPARED = ("dva", "shac-pixels")  # the method and its baseline (paper's "SHAC + diff. rendering")
+PAPER_BACKWARD_S = {  # spec §4, Table 1 (RTX 4080): (D.Va, visual SHAC)
+    "cartpole_swingup": (0.11, 0.36), "hopper": (0.19, 0.51), "ant": (0.21, 0.58), "humanoid": (0.68, 1.38)}
+
+
+def gradient_cost(agent: SHAC, state: TrainState) -> dict[str, float]:
+    """Forward and backward seconds of one actor gradient at ``state``, and its planned peak
+    memory. The times are NaN when that peak would not fit in the memory available now."""
+    cfg = agent.config
+    noise = jax.random.normal(jax.random.PRNGKey(1), (cfg.horizon, cfg.num_envs, agent.task.action_dim))
+    args = (state.actor_params, state, noise)
+    gradient = jax.jit(lambda p, s, n: agent.actor_gradient(p, s, n)[2]).lower(*args).compile()
+    peak_bytes = gradient.memory_analysis().peak_memory_in_bytes
+    cost = {"forward_s": float("nan"), "backward_s": float("nan"), "peak_memory_mb": peak_bytes / 2**20}
+    if peak_bytes < 0.8 * available_memory_bytes():
+        forward = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[0])
+        cost["forward_s"] = timed(forward, *args, repeats=1)[1]
+        cost["backward_s"] = timed(gradient, *args, repeats=1)[1] - cost["forward_s"]
+    return cost
+
+
+def available_memory_bytes() -> float:
+    """Free device memory (GPU) or available physical memory (CPU)."""
+    stats = jax.devices()[0].memory_stats() or {}
+    if "bytes_limit" in stats:
+        return stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image_size: int = 84,
+                  seed: int = 0) -> list[dict]:
+    """One row per task and algorithm of :data:`COMPARED` (same networks, envs, horizon, images)."""
+    rows = []
+    for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
+        for algo in COMPARED:
+            config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size)
+            agent, _ = build(RunSpec(task, algo, "paper", seed, dataclasses.asdict(config)))  # agent keeps the renderer
+            state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
+            rows.append({"task": task, "algo": algo, **gradient_cost(agent, state)})
+    return rows
+
+
+def ratios(rows: list[dict]) -> list[dict]:
+    """Per task: visual SHAC ÷ D.Va for backward time and peak memory, next to the paper's."""
+    by_key = {(r["task"], r["algo"]): r for r in rows}
+    out = []
+    for task in dict.fromkeys(r["task"] for r in rows):
+        dva, shac = by_key[(task, COMPARED[0])], by_key[(task, COMPARED[1])]
+        paper = PAPER_BACKWARD_S.get(task)
+        out.append({"task": task, "backward_ratio": shac["backward_s"] / dva["backward_s"],
+                    "memory_ratio": shac["peak_memory_mb"] / dva["peak_memory_mb"],
+                    "paper_backward_ratio": paper[1] / paper[0] if paper else float("nan")})
+    return out
+
+
+def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list[Path], str]:
+    """``cost.csv``, ``cost_ratios.csv``, ``cost.png`` (bars per task) and a markdown table."""
+    table = write_csv(out_dir / "cost.csv", rows)
+    ratio_rows = ratios(rows)
+    ratio_table = write_csv(out_dir / "cost_ratios.csv", ratio_rows)
+    tasks = [r["task"] for r in ratio_rows]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
+    x = np.arange(len(tasks))
+    for ax, key, label in zip(axes, ("backward_s", "peak_memory_mb"), ("backward time per iteration (s)",
+                                                                        "peak memory of the gradient (MB)")):
+        for i, algo in enumerate(COMPARED):
+            values = [next(r[key] for r in rows if r["task"] == t and r["algo"] == algo) for t in tasks]
+            ax.bar(x + (i - 0.5) * 0.4, values, 0.4, label=algo)
+        ax.set_xticks(x, tasks, fontsize=8)
+        ax.set_yscale("log")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, axis="y")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    figure = out_dir / "cost.png"
+    fig.savefig(figure)
+    plt.close(fig)
+    by_key = {(r["task"], r["algo"]): r for r in rows}
+    markdown = markdown_table(
+        ["task", "backward D.Va (s)", "backward visual SHAC (s)", "ratio", "paper ratio",
+         "memory D.Va (MB)", "memory visual SHAC (MB)", "ratio"],
+        [(r["task"], f"{by_key[(r['task'], 'dva')]['backward_s']:.3f}",
+          f"{by_key[(r['task'], 'shac-pixels')]['backward_s']:.3f}", f"{r['backward_ratio']:.1f}×",
+          f"{r['paper_backward_ratio']:.1f}×" if np.isfinite(r["paper_backward_ratio"]) else "–",
+          f"{by_key[(r['task'], 'dva')]['peak_memory_mb']:.0f}",
+          f"{by_key[(r['task'], 'shac-pixels')]['peak_memory_mb']:.0f}", f"{r['memory_ratio']:.1f}×")
+         for r in ratio_rows])
+    (out_dir / "cost.md").write_text(f"{title}\n\n{markdown}\n")
+    return [table, ratio_table, figure, out_dir / "cost.md"], markdown

@@ -1,0 +1,73 @@
+"""The analyses behind ``dva analyze``: their arithmetic on hand-made numbers, and each command
+end to end on a tiny configuration (the same one as the CLI training test, so compiles are shared)."""
+
+from __future__ import annotations
+
+import csv
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from dva.analysis.cost import ratios
+from dva.analysis.profile import per_million_steps
+from dva.cli import main
+
+TINY = ["--num-envs", "4", "--horizon", "8", "--image-size", "24"]
+
+
+def read_rows(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_per_million_steps_splits_the_iteration_by_hand():
+    times = {"rollout_forward": 0.5, "render": 0.2, "actor_forward": 0.1, "rollout_backward": 0.3,
+             "actor_backward": 0.4, "critic": 0.05, "iteration": 1.6}
+    parts = per_million_steps(times, num_envs=10, horizon=100)  # 1000 steps per iteration → × 1000
+    assert parts == pytest.approx({"simulation forward": 200.0, "simulation backward": 300.0, "rendering": 200.0,
+                                   "actor forward": 100.0, "actor backward": 400.0, "critic fitting": 50.0,
+                                   "other": 350.0})  # 1.6 − 1.25 s
+    fused = per_million_steps({**times, "iteration": 1.0}, num_envs=10, horizon=100)
+    assert fused["other"] == 0.0  # faster than its parts: nothing left over, never negative
+
+
+def test_cost_ratios_divide_visual_shac_by_dva():
+    rows = [{"task": "hopper", "algo": "dva", "backward_s": 0.2, "peak_memory_mb": 100.0},
+            {"task": "hopper", "algo": "shac-pixels", "backward_s": 0.5, "peak_memory_mb": 400.0},
+            {"task": "cheetah", "algo": "dva", "backward_s": 1.0, "peak_memory_mb": 10.0},
+            {"task": "cheetah", "algo": "shac-pixels", "backward_s": 3.0, "peak_memory_mb": 20.0}]
+    hopper, cheetah = ratios(rows)
+    assert hopper == pytest.approx({"task": "hopper", "backward_ratio": 2.5, "memory_ratio": 4.0,
+                                    "paper_backward_ratio": 0.51 / 0.19})
+    assert cheetah["task"] == "cheetah" and cheetah["backward_ratio"] == pytest.approx(3.0)
+    assert np.isnan(cheetah["paper_backward_ratio"])  # not in the paper's Table 1
+
+
+def test_analyze_cost_breakdown_and_gradnorm_end_to_end(tmp_path, capsys):
+    main(["analyze", "cost", "--tasks", "cartpole_swingup", *TINY, "--out", str(tmp_path)])
+    costs = read_rows(tmp_path / "cost" / "cost.csv")
+    assert [r["algo"] for r in costs] == ["dva", "shac-pixels"]
+    for row in costs:
+        assert float(row["backward_s"]) > 0 and float(row["peak_memory_mb"]) > 0
+    assert "| cartpole_swingup |" in capsys.readouterr().out
+    assert iio.imread(tmp_path / "cost" / "cost.png").ndim == 3
+
+    main(["analyze", "breakdown", "--task", "cartpole_swingup", *TINY, "--out", str(tmp_path)])
+    parts = read_rows(tmp_path / "breakdown_cartpole_swingup" / "breakdown.csv")
+    assert [p["part"] for p in parts][:3] == ["simulation forward", "simulation backward", "rendering"]
+    assert sum(float(p["share"]) for p in parts) == pytest.approx(1.0)
+    assert all(float(p["seconds_per_million_steps"]) > 0 for p in parts if p["part"] in ("rendering", "actor backward"))
+
+    main(["analyze", "gradnorm", "--tasks", "cartpole_swingup", "--iterations", "2", *TINY, "--out", str(tmp_path)])
+    norms = read_rows(tmp_path / "gradnorm" / "gradnorm.csv")
+    assert [(r["algo"], r["iteration"]) for r in norms] == [("dva", "1"), ("dva", "2"),
+                                                             ("shac-pixels", "1"), ("shac-pixels", "2")]
+    assert all(np.isfinite(float(r["actor_grad_norm"])) and float(r["actor_grad_norm"]) > 0 for r in norms)
+    assert iio.imread(tmp_path / "gradnorm" / "gradnorm.png").ndim == 3
+
+
+def test_analyze_rejects_unknown_task(capsys):
+    with pytest.raises(SystemExit):
+        main(["analyze", "cost", "--tasks", "cartpole_swingup", "walker"])
+    assert "unknown task 'walker'" in capsys.readouterr().err
