@@ -9,6 +9,8 @@ renders. Rendering is not differentiable, so its input passes through ``jax.lax.
 
 from __future__ import annotations
 
+import copy
+
 import jax
 import jax.numpy as jnp
 from mujoco import mjx
@@ -66,7 +68,10 @@ class PixelRenderer:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
-        mjm = task.mj_model
+        # A copy whose solver may iterate: only the template's one forward pass below uses it, and
+        # with the task's single iteration Warp prints an overflow warning per contact-rich model.
+        mjm = copy.copy(task.mj_model)
+        mjm.opt.iterations = 100
         self._camera = mjm.camera(task.camera).id
         self._warp_model = mjx.put_model(mjm, impl="warp")
         self._template = jax.vmap(lambda _: mjx.make_data(mjm, impl="warp"))(jnp.arange(num_envs))
