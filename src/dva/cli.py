@@ -189,7 +189,7 @@ class GradientsAnalysis:
     OUT/gradients_TASK/apg_vs_dpg.{csv,png}."""
 
     task: str = "cartpole_swingup"
-    """The paper uses hopper; our SHAC on Hopper diverges after ~220 iterations (benchmarks/RESULTS.md)."""
+    """The paper uses hopper (use --iterations 200: our SHAC on Hopper diverges after ~220)."""
     iterations: int = 300
     """SHAC iterations to train (CPU preset)."""
     every: int = 10
