@@ -224,14 +224,14 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
             state, metrics = step_fn(state)
             metrics = jax.device_get(metrics)  # one small transfer per iteration, for the log
             iteration_time = time.perf_counter() - tick
+            n = int(state.iteration)
             if not metrics["healthy"]:
-                norm, n = float(metrics["actor_grad_norm"]), int(state.iteration)
+                norm = float(metrics["actor_grad_norm"])
                 raise TrainingDiverged(
                     f"actor gradient norm {norm:.3g} at iteration {n} is NaN or above {cfg.max_grad_norm:.3g}; "
                     f"the last good checkpoint is in {manager.directory}", n, norm)
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
-            n = int(state.iteration)
             evaluation = eval_return(state) if eval_every and n % eval_every == 0 else ""
             row = {"iteration": n, "env_steps": n * cfg.num_envs * cfg.horizon,
                    "wall_time": round(offset_time + time.perf_counter() - start, 3),

@@ -17,7 +17,8 @@ from dva.analysis.bench import timed
 def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     """Seconds per part of one iteration at ``state``.
 
-    ``rollout_forward``: physics, rendering, frame stack, actor forward, critic bootstrap.
+    ``rollout_forward``: physics, rendering, frame stack, actor forward, critic bootstrap (one
+    compile that also returns the observations and the critic's trajectory for the parts below).
     ``actor_forward``: the actor alone on the rollout's h × N observations, one batch per step.
     ``rollout_backward``: reverse pass of the rollout (for D.Va: the physics only, giving the
     open-loop action gradient), i.e. value-and-gradient minus the forward.
@@ -30,9 +31,12 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     noise = jax.random.normal(jax.random.PRNGKey(1), (cfg.horizon, cfg.num_envs, agent.task.action_dim))
     params = state.actor_params
     times: dict[str, float] = {}
-    forward = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[0])
-    times["rollout_forward"] = timed(forward, params, state, noise)[1]
-    observations = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[1][-1]["observations"])(params, state, noise)
+
+    def forward(p, s, n):  # the loss, plus what the actor and critic timings below take as input
+        loss, aux = agent.rollout(p, s, n)
+        return loss, aux[-1]["observations"], aux[3]
+
+    _, times["rollout_forward"], (_, observations, trajectory) = timed(jax.jit(forward), params, state, noise)
     actor_forward = jax.jit(lambda p, obs: jax.lax.map(lambda o: agent.actor.apply(p, o)[0].sum(), obs))
     times["actor_forward"] = timed(actor_forward, params, observations)[1]
     if cfg.gradient == "full":
@@ -47,7 +51,6 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
         times["rollout_backward"] = physics_time - times["rollout_forward"]
         actor_backward = jax.jit(lambda vjps, g: jax.vmap(lambda vjp, g: vjp(g)[0])(vjps, g))
         times["actor_backward"] = timed(actor_backward, aux[-1]["actor_vjp"], grad)[1]
-    trajectory = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[1][3])(params, state, noise)
     critic = jax.jit(agent.critic_update)
     times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
     if agent.renderer is not None:
