@@ -96,12 +96,13 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     ratio_rows = ratios(rows)
     ratio_table = write_csv(out_dir / "cost_ratios.csv", ratio_rows)
     tasks = [r["task"] for r in ratio_rows]
+    by_key = {(r["task"], r["algo"]): r for r in rows}
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
     x = np.arange(len(tasks))
     for ax, key, label in zip(axes, ("backward_s", "peak_memory_mb"), ("backward time per iteration (s)",
                                                                         "peak memory of the gradient (MB)")):
         for i, algo in enumerate(COMPARED):
-            values = [next(r[key] for r in rows if r["task"] == t and r["algo"] == algo) for t in tasks]
+            values = [by_key[(task, algo)][key] for task in tasks]
             ax.bar(x + (i - 0.5) * 0.4, values, 0.4, label=algo)
         ax.set_xticks(x, tasks, fontsize=8)
         ax.set_yscale("log")
@@ -113,7 +114,6 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     figure = out_dir / "cost.png"
     fig.savefig(figure)
     plt.close(fig)
-    by_key = {(r["task"], r["algo"]): r for r in rows}
     markdown = markdown_table(
         ["task", "backward D.Va (s)", "backward visual SHAC (s)", "ratio", "paper ratio",
          "memory D.Va (MB)", "memory visual SHAC (MB)", "ratio"],
