@@ -17,13 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from dva.analysis.bench import machine_description, markdown_table
-from dva.tasks import TASKS, make_task
+from dva.tasks import PHYSICS, TASKS, make_task
 
 HORIZONS = (1, 2, 4, 8, 16, 32)
 
 
-def gradient_norms(name: str, num_envs: int, seed: int = 0) -> list[float]:
-    task = make_task(name)
+def gradient_norms(name: str, physics: str, num_envs: int, seed: int = 0) -> list[float]:
+    task = make_task(name, physics)
     keys = jax.random.split(jax.random.PRNGKey(seed), 3)
     max_h = max(HORIZONS)
 
@@ -56,18 +56,19 @@ def gradient_norms(name: str, num_envs: int, seed: int = 0) -> list[float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--physics", nargs="+", default=list(PHYSICS), choices=list(PHYSICS))
     parser.add_argument("--num-envs", type=int, default=16)
     args = parser.parse_args()
     rows = []
     for name in args.tasks:
-        task = make_task(name)
-        norms = gradient_norms(name, args.num_envs)
-        growth = norms[-1] / norms[0]
-        rows.append([name, *(f"{n:.3g}" for n in norms), f"{growth:.3g}", task.substeps,
-                     f"{task.contact_solref}", f"{tuple(round(x, 3) for x in task.contact_solimp[:3])}"])
-        print(f"{name}: done", flush=True)
+        for physics in args.physics:
+            task = make_task(name, physics)
+            norms = gradient_norms(name, physics, args.num_envs)
+            growth = norms[-1] / norms[0]
+            rows.append([name, physics, *(f"{n:.3g}" for n in norms), f"{growth:.3g}", task.substeps])
+            print(f"{name} {physics}: done", flush=True)
     print(f"\nGradient norm of the h-step return w.r.t. the actions (mean over {args.num_envs} envs); {machine_description()}\n")
-    print(markdown_table(["task", *(f"h={h}" for h in HORIZONS), "h=32 / h=1", "substeps", "solref", "solimp"], rows))
+    print(markdown_table(["task", "physics", *(f"h={h}" for h in HORIZONS), "h=32 / h=1", "substeps"], rows))
 
 
 if __name__ == "__main__":

@@ -92,6 +92,8 @@ class TrainCommand:
     """Override the preset's short horizon h."""
     image_size: int | None = None
     """Override the preset's image side (pixels)."""
+    physics: str | None = None
+    """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
 
     def run(self) -> None:
         from dva.training import train
@@ -101,7 +103,7 @@ class TrainCommand:
                 raise ValueError("--resume needs --run-dir: the run to continue")
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         run_dir = train(self.task, self.algo, self.preset, self.seed, self.iterations, self.minutes,
-                        self.run_dir, self.resume, self.eval_every, self.checkpoint_every,
+                        self.run_dir, self.resume, self.eval_every, self.checkpoint_every, self.physics,
                         num_envs=self.num_envs, horizon=self.horizon, image_size=self.image_size)
         print(f"run written to {run_dir}")
         if self.report:
@@ -131,7 +133,7 @@ class EvalCommand:
         from dva.visualize import policy_video
 
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
-        task = make_task(spec.task)
+        task = make_task(spec.task, spec.physics)
         random = random_policy_returns(task, jax.random.PRNGKey(self.seed), len(returns))
         print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
               f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "

@@ -39,6 +39,8 @@ PAPER_PRESETS: dict[str, dict] = {
                     target_alpha=0.2, iterations=30000),
     "ant": dict(trunk=128, actor_hidden=(128, 64, 32), critic_hidden=(64, 64), critic_lr=2e-3,
                 target_alpha=0.2, iterations=30000),
+    "quadruped": dict(trunk=128, actor_hidden=(128, 64, 32), critic_hidden=(64, 64), critic_lr=2e-3,
+                      target_alpha=0.2, iterations=30000),  # the paper gives none: Ant's row
     "humanoid": dict(trunk=256, actor_hidden=(256, 128), critic_hidden=(128, 128), critic_lr=5e-4,
                      target_alpha=0.995, iterations=60000),
 }
@@ -47,6 +49,10 @@ PAPER_PRESETS: dict[str, dict] = {
 # iteration and twice the updates per env step (Cart-pole from pixels: return 600-900 after
 # 100k steps, where h = 32 was still at the collapsed ~110; benchmarks/RESULTS.md).
 CPU_OVERRIDES = dict(num_envs=16, image_size=48, horizon=16, iterations=1000)
+# The legged robots learn for longer: a 1000-iteration decay left SHAC on Hopper (state) at the
+# final learning rate after 4 of its 30 minutes, its evaluations stuck at 1000–1500 after a 3052
+# peak; 4000 iterations ≈ 17 minutes of SHAC on state, ≈ 2 hours of D.Va from pixels.
+CPU_TASK_OVERRIDES = {task: dict(iterations=4000) for task in ("hopper", "cheetah", "ant", "humanoid", "quadruped")}
 PRESETS = ("paper", "cpu")
 
 
@@ -62,7 +68,7 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> SHACConfig:
     if algo == "shac-pixels":
         values.update(VISUAL_SHAC_PAPER.get(task, {}))
     if preset == "cpu":
-        values.update(CPU_OVERRIDES)
+        values.update(CPU_OVERRIDES, **CPU_TASK_OVERRIDES.get(task, {}))
     values.update({k: v for k, v in overrides.items() if v is not None})
     return SHACConfig(**values)
 
@@ -84,12 +90,13 @@ class RunSpec:
     preset: str
     seed: int
     config: dict
+    physics: str | None = None  # the task's contact model (None: the task's default)
 
 
 def build(spec: RunSpec) -> tuple[SHAC, PixelRenderer | SoftRenderer | None]:
     """The trainer (and its renderer, which must stay alive) for a run: pixels come from the
     Warp renderer, or from the differentiable one when the gradient goes through them."""
-    task = make_task(spec.task)
+    task = make_task(spec.task, spec.physics)
     config = SHACConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in spec.config.items()})
     renderer = None
     if config.observation == "pixels":
@@ -160,7 +167,8 @@ CSV_FIELDS = ["iteration", "env_steps", "wall_time", "train_return", "eval_retur
 
 def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iterations: int | None = None,
           minutes: float | None = None, run_dir: Path = Path("runs/latest"), resume: bool = False,
-          eval_every: int | None = 50, checkpoint_every: int = 25, **overrides) -> Path:
+          eval_every: int | None = 50, checkpoint_every: int = 25, physics: str | None = None,
+          **overrides) -> Path:
     """Train and return the run directory (logs, checkpoints, ``run.json``).
 
     Evaluates at iteration 0, every ``eval_every`` iterations and at the end (never when None).
@@ -179,7 +187,7 @@ def train(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, iter
         if spec_path.exists():
             raise ValueError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
         config = make_config(task, algo, preset, **overrides)
-        spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config))
+        spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
         run_dir.mkdir(parents=True, exist_ok=True)
         spec_path.write_text(json.dumps(spec.__dict__, indent=2))
     agent, _renderer = build(spec)

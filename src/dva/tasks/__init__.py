@@ -6,11 +6,12 @@ import functools
 
 from dva.tasks.base import CONTROL_DT, EnvState, Task
 from dva.tasks.cartpole import CartpoleSwingup
-from dva.tasks.legged import Ant, Humanoid
+from dva.tasks.legged import Ant, Humanoid, Quadruped
+from dva.tasks.physics import PHYSICS, check_physics
 from dva.tasks.planar import Cheetah, Hopper
 
 TASKS: dict[str, type[Task]] = {
-    cls.name: cls for cls in (CartpoleSwingup, Hopper, Cheetah, Ant, Humanoid)
+    cls.name: cls for cls in (CartpoleSwingup, Hopper, Cheetah, Ant, Humanoid, Quadruped)
 }
 
 
@@ -21,10 +22,11 @@ def check_task_name(name: str) -> None:
 
 
 @functools.cache
-def make_task(name: str) -> Task:
-    """The task called ``name`` (built once per process)."""
+def make_task(name: str, physics: str | None = None) -> Task:
+    """The task called ``name`` with its default or the given contact model (built once per
+    process); ``physics`` is one of :data:`PHYSICS` (see :mod:`dva.tasks.physics`)."""
     check_task_name(name)
-    return TASKS[name]()
+    return TASKS[name](physics)
 
 
-__all__ = ["CONTROL_DT", "EnvState", "TASKS", "Task", "check_task_name", "make_task"]
+__all__ = ["CONTROL_DT", "EnvState", "PHYSICS", "TASKS", "Task", "check_physics", "check_task_name", "make_task"]

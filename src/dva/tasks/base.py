@@ -25,6 +25,10 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
+from dva.tasks.physics import (
+    PenaltyContact, check_physics, floor_contact_points, implicit_gradient_substep, limited_joints,
+    penalty_forces, penalty_substep,
+)
 CONTROL_DT = 1.0 / 60.0  # the paper's control rate (60 Hz)
 
 
@@ -56,16 +60,31 @@ class Task(abc.ABC):
 
     name: ClassVar[str]
     episode_length: ClassVar[int] = 1000
-    substeps: ClassVar[int] = 4  # physics steps per control step
     camera: ClassVar[str] = "track"  # the camera the pixel observations come from
-    # Contact softness (MuJoCo solref = (time constant, damping ratio), solimp). Softer contacts
-    # than MuJoCo's default 0.02 s keep multi-step gradients bounded; see benchmarks/gradients.py.
+    physics: ClassVar[str] = "penalty"  # the default contact model (dva.tasks.physics)
+    # Penalty contacts (spec §7, dflex): 16 substeps at 60 Hz, parameters per robot.
+    penalty_substeps: ClassVar[int] = 16
+    penalty_contact: ClassVar[PenaltyContact] = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=0.9)
+    # MuJoCo soft constraints: substeps and contact softness (solref = (time constant, damping
+    # ratio), solimp); softer than MuJoCo's default 0.02 s keeps multi-step gradients bounded.
+    mujoco_substeps: ClassVar[int] = 4
     contact_solref: ClassVar[tuple[float, float]] = (0.02, 1.0)
     contact_solimp: ClassVar[tuple[float, ...]] = (0.9, 0.95, 0.001, 0.5, 2.0)
+    converged_iterations: ClassVar[int] = 100  # the forward solve of physics="mujoco"
+    # Armature (reflected rotor inertia) on every joint, the root's included, as dflex sets it
+    # (spec §7); None keeps the MJCF's values.
+    armature: ClassVar[float | None] = None
 
-    def __init__(self) -> None:
+    def __init__(self, physics: str | None = None) -> None:
+        physics = physics or type(self).physics
+        check_physics(physics)
+        self.physics = physics
+        self.substeps: int = self.penalty_substeps if physics == "penalty" else self.mujoco_substeps
         spec = self.build_spec()
         add_scene(spec)
+        if self.armature is not None:
+            for joint in spec.joints:
+                joint.armature = self.armature
         for geom in spec.geoms:
             geom.solref = self.contact_solref
             geom.solimp = self.contact_solimp
@@ -73,14 +92,25 @@ class Task(abc.ABC):
             pair.solref = self.contact_solref
             pair.solimp = self.contact_solimp
         spec.option.timestep = CONTROL_DT / self.substeps
-        # One solver iteration: the solver's while_loop is not reverse-differentiable otherwise.
+        # One solver iteration: the solver's while_loop is not reverse-differentiable otherwise
+        # (physics="mujoco" adds a converged solve outside the gradient; penalty has no solve).
         spec.option.iterations = 1
         spec.option.ls_iterations = 4
         # Pyramidal friction cones: MJX's elliptic cones take sqrt(0) for idle contacts, which
         # makes every gradient NaN.
         spec.option.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
+        if physics == "penalty":  # contacts and limits become forces; MuJoCo has nothing to solve
+            spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_LIMIT
         self.mj_model: mujoco.MjModel = spec.compile()
         self.model: mjx.Model = mjx.put_model(self.mj_model)
+        if physics == "penalty":
+            self.contact_points = floor_contact_points(self.mj_model)
+            self.limits = limited_joints(self.mj_model)
+        else:
+            converged = spec.compile()
+            converged.opt.iterations = self.converged_iterations
+            converged.opt.ls_iterations = 50
+            self.converged_model: mjx.Model = mjx.put_model(converged)
         self._data0 = mjx.make_data(self.model)
         self.action_dim: int = self.mj_model.nu
         qpos, qvel = self.initial_state(jax.random.PRNGKey(0))
@@ -166,13 +196,16 @@ class Task(abc.ABC):
         )
 
     def physics_step(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
-        """``substeps`` MJX steps of one environment with the control held at ``action``."""
+        """``substeps`` physics steps of one environment with the control held at ``action``."""
         data = data.replace(ctrl=action)
-
-        def substep(d: mjx.Data, _: None) -> tuple[mjx.Data, None]:
-            return mjx.step(self.model, d), None
-
-        data, _ = jax.lax.scan(substep, data, None, length=self.substeps)
+        if self.physics == "penalty":
+            forces = lambda d: penalty_forces(self.model, d, self.contact_points, self.penalty_contact, *self.limits)
+            substep = lambda d: penalty_substep(self.model, d, forces)
+        else:
+            substep = lambda d: implicit_gradient_substep(self.model, self.converged_model, d)
+        # Full float32 matrix products: GPUs would otherwise run them in TF32 (spec §7).
+        with jax.default_matmul_precision("highest"):
+            data, _ = jax.lax.scan(lambda d, _: (substep(d), None), data, None, length=self.substeps)
         return data
 
     def _reset_one(self, key: jax.Array) -> tuple[mjx.Data, jax.Array]:

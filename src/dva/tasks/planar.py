@@ -12,6 +12,7 @@ import mujoco
 from mujoco import mjx
 
 from dva.tasks.base import Task, load_asset_spec
+from dva.tasks.physics import PenaltyContact
 
 
 class PlanarRunner(Task):
@@ -50,6 +51,7 @@ class Hopper(PlanarRunner):
 
     name = "hopper"
     asset = "hopper.xml"
+    armature = 1.0  # dflex's (spec §7); 5× smaller 1 → 32-step gradient growth (benchmarks/gradients.py)
     termination_height = -0.45
     height_tolerance = 0.15
     max_pitch = jnp.pi / 6
@@ -73,6 +75,7 @@ class Cheetah(PlanarRunner):
     name = "cheetah"
     asset = "cheetah.xml"
     contact_solref = (0.05, 1.0)
+    penalty_contact = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=1.0)  # spec §7's cheetah
 
     def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:
         return data.qvel[0]
