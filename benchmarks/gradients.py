@@ -1,16 +1,26 @@
-"""Gradient norm of the return versus horizon, per task, with the contact parameters used.
+"""Gradient norm of the return versus horizon, per task and contact model, for random actions
+and for trained policies.
 
-    python benchmarks/gradients.py [--tasks ant humanoid] [--num-envs 16]
+    python benchmarks/gradients.py [--tasks ant humanoid] [--physics penalty mujoco] [--num-envs 16]
+    python benchmarks/gradients.py --runs runs/hopper_shac_s0 …   # trained (state) policies
 
 For each horizon h in 1, 2, 4 … 32 it differentiates the h-step return (sum of rewards, from a
-state reached after 60 random steps so the robots stand on the floor) with respect to all actions
-and prints the mean per-env gradient norm. Exploding contacts show as norms that grow by orders
-of magnitude with h; bounded ones grow roughly linearly (more actions, more reward terms).
+state reached after 60 steps, so the legged robots stand or lie on the floor) with respect to all
+actions and prints the mean per-env gradient norm. Random actions are open loop, uniform in
+[−0.5, 0.5]; a trained policy acts in closed loop (``a_t = π(s_t) + δ_t``, the gradient is with
+respect to the offsets δ and runs through the policy too, as SHAC's does).
+
+How to read it: bounded physics still makes the norm grow polynomially with h — a reward on a
+velocity (momentum carries an action's effect forward) gives h=32 / h=1 ≈ 100, a reward on a
+position (integrated twice) ≈ 2600 — so the last column, growth from h=16 to h=32, separates
+the two: ≤ 2^2.5 ≈ 5.7 is polynomial, larger is explosion.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -20,55 +30,83 @@ from dva.analysis.bench import machine_description, markdown_table
 from dva.tasks import PHYSICS, TASKS, make_task
 
 HORIZONS = (1, 2, 4, 8, 16, 32)
+WARM_UP_STEPS = 60
 
 
-def gradient_norms(name: str, physics: str, num_envs: int, seed: int = 0) -> list[float]:
+def gradient_norms(name: str, physics: str, num_envs: int, seed: int = 0,
+                   policy: Callable[[jax.Array], jax.Array] | None = None) -> list[float]:
+    """Mean per-env norm of ∇_actions (h-step return) for each h in :data:`HORIZONS`.
+
+    ``policy`` maps state observations (N, obs_dim) to actions in [−1, 1]; None: random actions.
+    """
     task = make_task(name, physics)
     keys = jax.random.split(jax.random.PRNGKey(seed), 3)
     max_h = max(HORIZONS)
 
+    def act(state, offset):
+        return offset if policy is None else policy(state.obs) + offset
+
     @jax.jit
     def warm_state(key):
         state = task.reset(key, num_envs)
-        actions = jax.random.uniform(keys[1], (60, num_envs, task.action_dim), minval=-0.5, maxval=0.5)
-        return jax.lax.scan(lambda s, a: (task.step(s, a), None), state, actions)[0]
+        noise = jax.random.uniform(keys[1], (WARM_UP_STEPS, num_envs, task.action_dim), minval=-0.5, maxval=0.5)
+        noise = noise if policy is None else 0.0 * noise
+        return jax.lax.scan(lambda s, a: (task.step(s, act(s, a)), None), state, noise)[0]
 
-    def horizon_return(actions, state, horizon):
+    def horizon_return(offsets, state, horizon):
         def one(carry, inputs):
             state, total = carry
-            t, action = inputs
-            state = task.step(state, action)
+            t, offset = inputs
+            state = task.step(state, act(state, offset))
             return (state, total + jnp.where(t < horizon, state.reward, 0.0)), None
 
-        (_, total), _ = jax.lax.scan(one, (state, jnp.zeros(num_envs)), (jnp.arange(max_h), actions))
+        (_, total), _ = jax.lax.scan(one, (state, jnp.zeros(num_envs)), (jnp.arange(max_h), offsets))
         return total.sum()
 
     grad = jax.jit(jax.grad(horizon_return))
     state = warm_state(keys[0])
-    actions = jax.random.uniform(keys[2], (max_h, num_envs, task.action_dim), minval=-0.5, maxval=0.5)
+    offsets = jax.random.uniform(keys[2], (max_h, num_envs, task.action_dim), minval=-0.5, maxval=0.5)
+    if policy is not None:
+        offsets = jnp.zeros_like(offsets)
     norms = []
     for horizon in HORIZONS:
-        g = np.asarray(grad(actions, state, horizon))  # (T, N, A); per-env norm over its actions
+        g = np.asarray(grad(offsets, state, horizon))  # (T, N, A); per-env norm over its actions
         norms.append(float(np.sqrt((g**2).sum(axis=(0, 2))).mean()))
     return norms
+
+
+def trained_policy(run_dir: Path) -> tuple[str, str, Callable[[jax.Array], jax.Array]]:
+    """(task, physics, deterministic policy) of a state-observation run's latest checkpoint."""
+    from dva.training import load_run
+
+    spec, agent, _, state = load_run(run_dir)
+    if agent.config.observation != "state":
+        raise ValueError(f"{run_dir} learned from pixels; --runs takes state-observation runs (shac, dpg-state)")
+
+    def policy(obs: jax.Array) -> jax.Array:
+        return jnp.tanh(agent.pre_tanh_action(state.actor_params, state.obs_stats.normalize(obs), None))
+
+    return spec.task, make_task(spec.task, spec.physics).physics, policy
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--physics", nargs="+", default=list(PHYSICS), choices=list(PHYSICS))
+    parser.add_argument("--runs", nargs="+", type=Path, default=[], help="trained state-policy runs (replaces --tasks)")
     parser.add_argument("--num-envs", type=int, default=16)
     args = parser.parse_args()
+    cases = [(run.name, *trained_policy(run)) for run in args.runs] or [
+        ("random", name, physics, None) for name in args.tasks for physics in args.physics]
     rows = []
-    for name in args.tasks:
-        for physics in args.physics:
-            task = make_task(name, physics)
-            norms = gradient_norms(name, physics, args.num_envs)
-            growth = norms[-1] / norms[0]
-            rows.append([name, physics, *(f"{n:.3g}" for n in norms), f"{growth:.3g}", task.substeps])
-            print(f"{name} {physics}: done", flush=True)
+    for label, name, physics, policy in cases:
+        norms = gradient_norms(name, physics, args.num_envs, policy=policy)
+        rows.append([name, physics, label, *(f"{n:.3g}" for n in norms), f"{norms[-1] / norms[0]:.3g}",
+                     f"{norms[-1] / norms[-2]:.2g}", make_task(name, physics).substeps])
+        print(f"{name} {physics} {label}: done", flush=True)
     print(f"\nGradient norm of the h-step return w.r.t. the actions (mean over {args.num_envs} envs); {machine_description()}\n")
-    print(markdown_table(["task", "physics", *(f"h={h}" for h in HORIZONS), "h=32 / h=1", "substeps"], rows))
+    print(markdown_table(["task", "physics", "policy", *(f"h={h}" for h in HORIZONS), "h=32 / h=1", "h=32 / h=16",
+                          "substeps"], rows))
 
 
 if __name__ == "__main__":

@@ -51,8 +51,8 @@ def test_penalty_force_on_a_sliding_sphere_hand_computed():
     normal = 2e4 * 0.01 + 1e3 * 0.01 * 0.5  # spring + damping while sinking
     friction = -min(1e3 * 2.0, 0.9 * 2e4 * 0.01)  # Coulomb-capped: 180 N against the sliding
     np.testing.assert_allclose(qfrc[:3], [friction, 0.0, normal], rtol=1e-4)
-    # The friction acts at the contact point, 0.1 m below the centre: a torque about y.
-    np.testing.assert_allclose(qfrc[3:], [0.0, friction * 0.1, 0.0], rtol=1e-4, atol=1e-4)
+    # The friction acts at the contact point, 0.1 m below the centre: r × f = (0, 0, −0.1) × (f, 0, n).
+    np.testing.assert_allclose(qfrc[3:], [0.0, -0.1 * friction, 0.0], rtol=1e-4, atol=1e-4)
 
 
 def test_joint_limit_spring_and_damping():

@@ -81,8 +81,31 @@ def test_humanoid_reward_code_version():
     assert task.observation(data_with(task, qpos, qvel), action).shape == (76,)
 
 
+def test_quadruped_reward_and_start_pose():
+    task = make_task("quadruped")
+    qpos, qvel = task.initial_state(jax.random.PRNGKey(0))
+    # Hips at 0.6 rad, knees at −1.2 (± the reset noise): the feet stand under the hips.
+    np.testing.assert_allclose(qpos[7:].reshape(4, 3), np.tile([0.0, 0.6, -1.2], (4, 1)), atol=task.reset_noise)
+    pitched = np.array(task.mj_model.qpos0)
+    pitched[2] = 0.42  # Δh = clip(0.42 − 0.4, −1, 0.05) = 0.02 → 10·0.02
+    pitched[3:7] = [np.cos(0.3 / 2), 0, np.sin(0.3 / 2), 0]  # pitched 0.3 rad about y
+    qvel = np.zeros(task.mj_model.nv)
+    qvel[0] = 1.5
+    action = jnp.full(12, 0.5)
+    up = heading = np.cos(0.3)
+    expected = 1.5 + 0.1 * up + heading + 10 * 0.02 - 0.005 * 12 * 0.25
+    assert float(task.reward(data_with(task, pitched, qvel), action)) == pytest.approx(expected, rel=1e-5)
+    pitched[2] = 0.3  # Δh = −0.1 → −200·0.01
+    expected_low = 1.5 + 0.1 * up + heading - 2.0 - 0.005 * 12 * 0.25
+    assert float(task.reward(data_with(task, pitched, qvel), action)) == pytest.approx(expected_low, rel=1e-5)
+    assert not bool(task.is_terminated(data_with(task, pitched, qvel)))
+    pitched[2] = 0.24
+    assert bool(task.is_terminated(data_with(task, pitched, qvel)))
+
+
 def test_observation_sizes_match_shac(task):
-    expected = {"cartpole_swingup": (5, 1), "hopper": (11, 3), "cheetah": (17, 6), "ant": (37, 8), "humanoid": (76, 21)}
+    expected = {"cartpole_swingup": (5, 1), "hopper": (11, 3), "cheetah": (17, 6), "ant": (37, 8), "humanoid": (76, 21),
+                "quadruped": (49, 12)}
     assert (task.obs_dim, task.action_dim) == expected[task.name]
 
 

@@ -104,15 +104,18 @@ def floor_contact_points(model: mujoco.MjModel, floor: str = "floor") -> Contact
 
 
 def contact_state(model: mjx.Model, data: mjx.Data, points: ContactPoints):
-    """World positions (P, 3), penetration depths (P,) and Jacobians (P, nv, 3) of the points.
+    """Contact positions (P, 3), penetration depths (P,) and Jacobians (P, nv, 3) of the points.
 
-    Needs the kinematics of ``data`` (``xpos``, ``xmat``, ``subtree_com``, ``cdof``).
+    A sphere's contact position is its lowest point (centre − radius·ẑ): forces act there, so
+    friction also turns the body, and a rolling sphere does not slip (dflex applies them at the
+    centre). Needs the kinematics of ``data`` (``xpos``, ``xmat``, ``subtree_com``, ``cdof``).
     """
-    body = jnp.asarray(points.body)
-    world = data.xpos[body] + jnp.einsum("pij,pj->pi", data.xmat[body], jnp.asarray(points.local))
-    depth = jnp.maximum(jnp.asarray(points.radius) - world[:, 2], 0.0)
-    jacobian = jax.vmap(lambda p, b: mjx.jac(model, data, p, b)[0])(world, body)
-    return world, depth, jacobian
+    body, radius = jnp.asarray(points.body), jnp.asarray(points.radius)
+    centre = data.xpos[body] + jnp.einsum("pij,pj->pi", data.xmat[body], jnp.asarray(points.local))
+    depth = jnp.maximum(radius - centre[:, 2], 0.0)
+    lowest = centre.at[:, 2].add(-radius)
+    jacobian = jax.vmap(lambda p, b: mjx.jac(model, data, p, b)[0])(lowest, body)
+    return lowest, depth, jacobian
 
 
 def penalty_forces(model: mjx.Model, data: mjx.Data, points: ContactPoints, params: PenaltyContact,
@@ -148,7 +151,7 @@ def contact_forces(model: mjx.Model, data: mjx.Data, points: ContactPoints, para
 def limited_joints(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(dof index, range (lo, hi), qpos index) of every limited hinge or slide joint."""
     rows = [(model.jnt_dofadr[j], model.jnt_range[j], model.jnt_qposadr[j]) for j in range(model.njnt)
-            if model.jnt_limited[j] and model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)]
+            if model.jnt_limited[j] and int(model.jnt_type[j]) in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)]
     if not rows:
         return np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int)
     dofs, ranges, qpos = zip(*rows)
