@@ -14,6 +14,10 @@ def test_tasks_lists_every_task_with_sizes(capsys):
     out = capsys.readouterr().out
     assert "ant" in out and "37" in out and "humanoid" in out and "76" in out
     assert "cartpole_swingup" in out and "240" in out
+    rows = {line.split()[0]: line.split() for line in out.splitlines()[1:]}
+    assert rows["quadruped"][1:6] == ["49", "12", "1000", "penalty", "16"]
+    assert "20000 / 1000 / 1000 / 0.9" in " ".join(rows["hopper"])  # spec §7's hopper
+    assert rows["cartpole_swingup"][6] == "none"  # nothing touches the floor
 
 
 def test_render_writes_grid_and_video(tmp_path):

@@ -11,7 +11,7 @@ import pytest
 from mujoco import mjx
 
 from dva.tasks import make_task
-from dva.tasks.physics import PenaltyContact, contact_state, floor_contact_points, penalty_forces
+from dva.tasks.physics import PenaltyContact, contact_state, floor_contact_points, mechanical_energy, penalty_forces
 
 LEGGED = ["hopper", "cheetah", "ant", "humanoid", "quadruped"]
 
@@ -70,23 +70,6 @@ def test_joint_limit_spring_and_damping():
     params = task.penalty_contact
     assert qfrc[dofs[foot]] == pytest.approx(-params.limit_ke * 0.1 - params.limit_kd * 2.0, rel=1e-4)
     np.testing.assert_allclose(np.delete(qfrc, dofs[foot]), 0.0, atol=1e-6)  # nothing else pushes
-
-
-def mechanical_energy(task, data: mjx.Data) -> jax.Array:
-    """Kinetic + gravitational + the penalty and passive springs' potential energy (floor at z = 0)."""
-    data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
-    kinetic = 0.5 * data.qvel @ mjx.full_m(task.model, data) @ data.qvel
-    gravity = -jnp.sum(task.model.body_mass * (data.xipos @ task.model.opt.gravity))
-    _, depth, _ = contact_state(task.model, data, task.contact_points)
-    contact = 0.5 * task.penalty_contact.ke * jnp.sum(depth**2)
-    dofs, ranges, qpos_index = task.limits
-    q = data.qpos[qpos_index]
-    violation = jnp.maximum(ranges[:, 0] - q, 0.0) + jnp.maximum(q - ranges[:, 1], 0.0)
-    limits = 0.5 * task.penalty_contact.limit_ke * jnp.sum(violation**2)
-    hinge = np.asarray(task.mj_model.jnt_type) == mujoco.mjtJoint.mjJNT_HINGE
-    adr = task.mj_model.jnt_qposadr[hinge]
-    springs = 0.5 * jnp.sum(task.mj_model.jnt_stiffness[hinge] * (data.qpos[adr] - task.mj_model.qpos_spring[adr]) ** 2)
-    return kinetic + gravity + contact + limits + springs
 
 
 @pytest.mark.parametrize("name", LEGGED)

@@ -20,10 +20,14 @@ class TasksCommand:
     def run(self) -> None:
         from dva.tasks import make_task
 
-        print(f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'substeps':>10}  pixel camera")
+        print(f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'physics':>9}{'substeps':>10}  "
+              f"{'contact ke / kd / kf / mu':<28}pixel camera")
         for name in TASKS:
             task = make_task(name)
-            print(f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{task.substeps:>10}  {task.camera}")
+            c = task.penalty_contact
+            contact = f"{c.ke:g} / {c.kd:g} / {c.kf:g} / {c.mu:g}" if len(task.contact_points.body) else "none"
+            print(f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{task.physics:>9}"
+                  f"{task.substeps:>10}  {contact:<28}{task.camera}")
 
 
 @dataclasses.dataclass

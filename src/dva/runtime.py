@@ -28,7 +28,9 @@ def configure_caches() -> None:
     jax.config.update("jax_compilation_cache_dir", str(root / "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    import warp
-
+    try:
+        import warp
+    except ImportError:  # only the Warp pixel renderer needs it; physics and state-based training do not
+        return
     warp.config.quiet = True  # no start-up banner on stdout
     warp.config.log_level = warp.LOG_WARNING  # no per-kernel "Module … load" lines

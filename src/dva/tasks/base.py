@@ -198,15 +198,17 @@ class Task(abc.ABC):
     def physics_step(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
         """``substeps`` physics steps of one environment with the control held at ``action``."""
         data = data.replace(ctrl=action)
-        if self.physics == "penalty":
-            forces = lambda d: penalty_forces(self.model, d, self.contact_points, self.penalty_contact, *self.limits)
-            substep = lambda d: penalty_substep(self.model, d, forces)
-        else:
-            substep = lambda d: implicit_gradient_substep(self.model, self.converged_model, d)
         # Full float32 matrix products: GPUs would otherwise run them in TF32 (spec §7).
         with jax.default_matmul_precision("highest"):
-            data, _ = jax.lax.scan(lambda d, _: (substep(d), None), data, None, length=self.substeps)
+            data, _ = jax.lax.scan(lambda d, _: (self.substep(d), None), data, None, length=self.substeps)
         return data
+
+    def substep(self, data: mjx.Data) -> mjx.Data:
+        """One physics step (``CONTROL_DT / substeps``) of one environment under its ``ctrl``."""
+        if self.physics == "penalty":
+            forces = lambda d: penalty_forces(self.model, d, self.contact_points, self.penalty_contact, *self.limits)
+            return penalty_substep(self.model, data, forces)
+        return implicit_gradient_substep(self.model, self.converged_model, data)
 
     def _reset_one(self, key: jax.Array) -> tuple[mjx.Data, jax.Array]:
         qpos, qvel = self.initial_state(key)

@@ -184,3 +184,24 @@ def implicit_gradient_substep(model: mjx.Model, converged_model: mjx.Model, data
     qacc = converged - newton.Mgrad
     data = data.replace(qacc=qacc, qfrc_constraint=mjx.mul_m(model, data, qacc) - data.qfrc_smooth)
     return mjx.euler(model, data)
+
+
+def mechanical_energy(task, data: mjx.Data) -> jax.Array:
+    """Kinetic + gravitational (floor at z = 0) + the potential energy of the penalty contact and
+    limit springs and of the joints' own springs, of one environment of a penalty-physics task."""
+    data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
+    kinetic = 0.5 * data.qvel @ mjx.full_m(task.model, data) @ data.qvel
+    gravity = -jnp.sum(task.model.body_mass * (data.xipos @ task.model.opt.gravity))
+    contact = 0.0
+    if len(task.contact_points.body):
+        _, depth, _ = contact_state(task.model, data, task.contact_points)
+        contact = 0.5 * task.penalty_contact.ke * jnp.sum(depth**2)
+    _, ranges, qpos_index = task.limits
+    q = data.qpos[qpos_index]
+    violation = jnp.maximum(ranges[:, 0] - q, 0.0) + jnp.maximum(q - ranges[:, 1], 0.0)
+    limits = 0.5 * task.penalty_contact.limit_ke * jnp.sum(violation**2)
+    mj = task.mj_model
+    hinge = np.isin(mj.jnt_type, [int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)])
+    adr = mj.jnt_qposadr[hinge]
+    springs = 0.5 * jnp.sum(mj.jnt_stiffness[hinge] * (data.qpos[adr] - mj.qpos_spring[adr]) ** 2)
+    return kinetic + gravity + contact + limits + springs
