@@ -1,7 +1,7 @@
 """Per-task throughput: physics steps/s, forward+backward of a 32-step rollout, rendered frames/s,
 peak memory. CPU by default; the same script uses a GPU when JAX sees one.
 
-    python benchmarks/throughput.py [--tasks cartpole_swingup hopper] [--num-envs 64]
+    python benchmarks/throughput.py [--tasks cartpole_swingup hopper] [--physics penalty mujoco] [--num-envs 64]
 
 Each task runs in its own process so that the peak memory column is that task's alone.
 """
@@ -16,7 +16,7 @@ import sys
 HORIZON = 32
 
 
-def measure(name: str, num_envs: int) -> dict[str, float]:
+def measure(name: str, physics: str, num_envs: int) -> dict[str, float]:
     import jax
     import jax.numpy as jnp
 
@@ -24,7 +24,7 @@ def measure(name: str, num_envs: int) -> dict[str, float]:
     from dva.rendering import PixelRenderer
     from dva.tasks import make_task
 
-    task = make_task(name)
+    task = make_task(name, physics)
     state = jax.jit(task.reset, static_argnums=1)(jax.random.PRNGKey(0), num_envs)
     actions = jax.random.uniform(jax.random.PRNGKey(1), (HORIZON, num_envs, task.action_dim), minval=-1, maxval=1)
 
@@ -54,30 +54,31 @@ def measure(name: str, num_envs: int) -> dict[str, float]:
 
 
 def main() -> None:
-    from dva.tasks import TASKS
+    from dva.tasks import PHYSICS, TASKS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--physics", nargs="+", default=list(PHYSICS), choices=list(PHYSICS))
     parser.add_argument("--num-envs", type=int, default=64)
     parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: measure one task, print JSON
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(measure(args.one, args.num_envs)))
+        print(json.dumps(measure(args.one, args.physics[0], args.num_envs)))
         return
 
     from dva.analysis.bench import machine_description, markdown_table
 
     rows = []
-    for name in args.tasks:
-        out = subprocess.run([sys.executable, __file__, "--one", name, "--num-envs", str(args.num_envs)],
-                             capture_output=True, text=True, check=True)
+    for name, physics in [(name, physics) for name in args.tasks for physics in args.physics]:
+        out = subprocess.run([sys.executable, __file__, "--one", name, "--physics", physics,
+                              "--num-envs", str(args.num_envs)], capture_output=True, text=True, check=True)
         r = json.loads(out.stdout.strip().splitlines()[-1])
-        rows.append([name, f"{r['steps_per_s']:.0f}", f"{r['rollout_s']:.3f}", f"{r['rollout_fwd_bwd_s']:.3f}",
+        rows.append([name, physics, f"{r['steps_per_s']:.0f}", f"{r['rollout_s']:.3f}", f"{r['rollout_fwd_bwd_s']:.3f}",
                      f"{r['rollout_fwd_bwd_s'] / r['rollout_s']:.1f}", f"{r['frames_per_s']:.0f}",
                      f"{r['peak_mb']:.0f}", f"{r['compile_s']:.0f}"])
-        print(f"{name}: done", flush=True)
+        print(f"{name} {physics}: done", flush=True)
     print(f"\n{args.num_envs} envs, {HORIZON}-step rollouts; {machine_description()}\n")
-    print(markdown_table(["task", "env steps/s (fwd)", f"{HORIZON}-step rollout s", "fwd+bwd s",
+    print(markdown_table(["task", "physics", "env steps/s (fwd)", f"{HORIZON}-step rollout s", "fwd+bwd s",
                           "bwd/fwd ratio", f"rendered frames/s (84²)", "peak MB", "compile s"], rows))
 
 

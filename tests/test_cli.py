@@ -35,7 +35,16 @@ def test_unknown_task_is_one_line_error(capsys):
         main(["render", "--task", "walker"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err == "dva: error: unknown task 'walker'; choose one of: cartpole_swingup, hopper, cheetah, ant, humanoid"
+    assert err == ("dva: error: unknown task 'walker'; choose one of: cartpole_swingup, hopper, cheetah, ant, humanoid, "
+                   "quadruped")
+
+
+def test_unknown_physics_is_one_line_error(capsys, tmp_path):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--task", "hopper", "--physics", "rigid", "--run-dir", str(tmp_path / "run")])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip() == "dva: error: unknown physics 'rigid'; choose one of: penalty, mujoco"
+    assert not (tmp_path / "run").exists()
 
 
 def test_bad_image_size_is_one_line_error(capsys):

@@ -10,7 +10,7 @@ from typing import Annotated, Union
 
 import tyro
 
-from dva.tasks import TASKS, check_task_name
+from dva.tasks import TASKS, check_physics, check_task_name
 
 
 @dataclasses.dataclass
@@ -304,6 +304,8 @@ def main(argv: list[str] | None = None) -> None:
         for task in [getattr(command, "task", None), *getattr(command, "tasks", [])]:
             if task is not None:
                 check_task_name(task)  # fail before any heavy set-up
+        if getattr(command, "physics", None) is not None:
+            check_physics(command.physics)
         command.run()
     except ValueError as error:  # bad input: one line naming the value and the choices
         print(f"dva: error: {error}", file=sys.stderr)
