@@ -53,7 +53,7 @@ def test_cartpole_render_shows_the_cart_where_it_is(cartpole_renderer):
     assert 5.0 < depth[0][masks[0]].mean() < 7.0  # the cart is ~6.2 m from the camera
 
 
-@pytest.mark.parametrize("name", ["hopper", "cheetah", "ant", "humanoid"])
+@pytest.mark.parametrize("name", ["hopper", "cheetah", "ant", "humanoid", "quadruped"])
 def test_tracking_camera_sees_robot_and_pose_changes_image(name):
     task = make_task(name)
     renderer = PixelRenderer(task, num_envs=2, width=64)
