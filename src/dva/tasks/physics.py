@@ -8,8 +8,8 @@ smooth-almost-everywhere function of ``(qpos, qvel)``, so reverse mode different
 the physics that runs forward: no solver, no warm start carried from step to step.
 
 ``"mujoco"`` — MuJoCo's soft constraints with an accurate forward and an implicit gradient: the
-constraint solve runs to convergence under ``stop_gradient`` and one Newton iteration started from
-its solution carries the gradient (for a fixed active set that iteration's derivative is the
+constraint solve runs to convergence under ``stop_gradient`` and one full Newton step from its
+solution carries the gradient (for a fixed active set its derivative is the
 implicit-function-theorem gradient), with ``qacc_warmstart`` cut from the graph.
 
 Both are pure functions of one environment's ``mjx.Data``; :class:`~dva.tasks.base.Task` vmaps them.
@@ -18,8 +18,6 @@ Both are pure functions of one environment's ``mjx.Data``; :class:`~dva.tasks.ba
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
-
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -27,7 +25,6 @@ import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import solver as mjx_solver
 
-Physics = Literal["penalty", "mujoco"]
 PHYSICS: tuple[str, ...] = ("penalty", "mujoco")
 SAFE_EPS = 1e-6  # keeps |v_t| and its gradient finite at zero sliding speed
 
