@@ -29,6 +29,7 @@ from dva.tasks.physics import (
     PenaltyContact, check_physics, floor_contact_points, implicit_gradient_substep, limited_joints,
     penalty_forces, penalty_substep,
 )
+
 CONTROL_DT = 1.0 / 60.0  # the paper's control rate (60 Hz)
 
 
