@@ -3,12 +3,14 @@ stop-gradient on observations, and TD-λ targets against a hand-computed case.""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.algorithms.shac import SHAC, SHACConfig, td_lambda_targets
+from dva.algorithms.shac import SHAC, SHACConfig, clip_gradient_per_env, td_lambda_targets
 from dva.tasks import make_task
 
 HORIZON, NUM_ENVS = 6, 2
@@ -83,6 +85,43 @@ def test_decoupled_rollout_cuts_the_observation_path(setup):
     offset = jnp.zeros_like(train.env.obs)
     assert float(jnp.abs(jax.grad(lambda w: first_action(agent("decoupled"), w))(offset)).max()) == 0.0
     assert float(jnp.abs(jax.grad(lambda w: first_action(agent("full"), w))(offset)).max()) > 0.0
+
+
+def test_per_env_gradient_clipping_rescales_only_large_cotangents():
+    # Env 0's cotangent (3, 4 | 12) has norm 13 → scaled to 2; env 1's (0.3, 0.4 | 0) stays.
+    qpos = jnp.array([[1.0, 2.0], [3.0, 4.0]])
+    qvel = jnp.array([[5.0], [6.0]])
+    upstream = (jnp.array([[3.0, 4.0], [0.3, 0.4]]), jnp.array([[12.0], [0.0]]))
+
+    def loss(q, v):
+        q, v = clip_gradient_per_env((q, v), 2.0)
+        return jnp.sum(q * upstream[0]) + jnp.sum(v * upstream[1])
+
+    assert float(loss(qpos, qvel)) == pytest.approx(3 + 8 + 0.9 + 1.6 + 60)  # the forward is the identity
+    grad_q, grad_v = jax.grad(loss, argnums=(0, 1))(qpos, qvel)
+    np.testing.assert_allclose(grad_q, [[3 * 2 / 13, 4 * 2 / 13], [0.3, 0.4]], rtol=1e-6)
+    np.testing.assert_allclose(grad_v, [[12 * 2 / 13], [0.0]], rtol=1e-6)
+
+
+def test_state_gradient_clipping_in_the_rollout(setup):
+    """A bound far above the real cotangents changes nothing; a tiny one shrinks the gradient
+    that reaches earlier actions, and the loss (the forward) is the same either way."""
+    shac, train, noise = setup
+
+    def action_grad(clip):
+        clipped = SHAC(shac.task, dataclasses.replace(shac.config, state_grad_clip=clip))
+        return jax.value_and_grad(lambda w: clipped.rollout(train.actor_params, train, noise, w)[0])(
+            jnp.zeros_like(noise))
+
+    exact_loss, exact = action_grad(None)
+    loose_loss, loose = action_grad(1e9)
+    tight_loss, tight = action_grad(1e-6)
+    assert float(loose_loss) == float(exact_loss) == float(tight_loss)
+    np.testing.assert_allclose(loose, exact, rtol=1e-6)
+    # The last action's gradient reaches no later state; earlier ones keep only their own step's
+    # reward (the path through the next states is cut).
+    np.testing.assert_allclose(tight[-1], exact[-1], rtol=1e-6)
+    assert np.linalg.norm(tight[:-1]) < 0.5 * np.linalg.norm(exact[:-1])
 
 
 def test_td_lambda_targets_hand_computed():

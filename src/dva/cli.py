@@ -98,6 +98,8 @@ class TrainCommand:
     """Override the preset's image side (pixels)."""
     physics: str | None = None
     """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
+    state_grad_clip: float | None = None
+    """Per-env, per-step bound on the state gradient in the backward pass (AHAC; default: off)."""
 
     def run(self) -> None:
         from dva.training import train
@@ -108,7 +110,8 @@ class TrainCommand:
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         run_dir = train(self.task, self.algo, self.preset, self.seed, self.iterations, self.minutes,
                         self.run_dir, self.resume, self.eval_every, self.checkpoint_every, self.physics,
-                        num_envs=self.num_envs, horizon=self.horizon, image_size=self.image_size)
+                        num_envs=self.num_envs, horizon=self.horizon, image_size=self.image_size,
+                        state_grad_clip=self.state_grad_clip)
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()

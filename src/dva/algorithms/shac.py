@@ -15,6 +15,7 @@ targets for ``critic_iterations × critic_minibatches`` steps and updates the ta
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
 import jax
@@ -44,6 +45,11 @@ class SHACConfig:
     betas: tuple[float, float] = (0.7, 0.95)
     grad_clip: float = 1.0
     max_grad_norm: float = 1e8  # an actor gradient norm above this (or NaN) stops training (ref. code)
+    state_grad_clip: float | None = None
+    """Per-env bound on the norm of the gradient w.r.t. (qpos, qvel) as it flows back from one
+    step to the one before (AHAC's per-step clipping, spec §7), in units of one env's window return
+    (the loss is their mean over N·h, so the bound on the loss's cotangent is this ÷ N·h);
+    None: exact gradients."""
     target_alpha: float = 0.2
     critic_iterations: int = 16
     critic_minibatches: int = 4
@@ -177,6 +183,10 @@ class SHAC:
             else:
                 pre_tanh, actor_vjp = self.pre_tanh_action(actor_params, observation, eps), None
             pre_tanh = pre_tanh + offset
+            if cfg.state_grad_clip is not None:
+                qpos, qvel = clip_gradient_per_env((env.data.qpos, env.data.qvel),
+                                                   cfg.state_grad_clip / (cfg.num_envs * len(noise)))
+                env = env.replace(data=env.data.replace(qpos=qpos, qvel=qvel))
             env = task.step(env, jnp.tanh(pre_tanh))
             frames = self.next_frames(frames, env)
             next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
@@ -309,6 +319,27 @@ class SHAC:
         (_, _, total, _), shown = jax.lax.scan(step, (env, frames, zeros, zeros + 1.0), None,
                                                length=self.task.episode_length)
         return (total, *shown) if record else total
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
+def clip_gradient_per_env(tree, max_norm: float):
+    """The identity, whose backward pass rescales each env's cotangent (leading axis, all leaves
+    together) to a norm of at most ``max_norm``."""
+    return tree
+
+
+def _clip_forward(tree, max_norm):
+    return tree, None
+
+
+def _clip_backward(max_norm, _, cotangent):
+    leaves = jax.tree.leaves(cotangent)
+    squared = sum(jnp.sum(jnp.square(leaf.reshape(leaf.shape[0], -1)), axis=1) for leaf in leaves)
+    scale = jnp.minimum(1.0, max_norm / jnp.maximum(jnp.sqrt(squared), 1e-12))
+    return (jax.tree.map(lambda leaf: leaf * scale.reshape((-1,) + (1,) * (leaf.ndim - 1)), cotangent),)
+
+
+clip_gradient_per_env.defvjp(_clip_forward, _clip_backward)
 
 
 def td_lambda_targets(reward: jax.Array, next_value: jax.Array, boundary: jax.Array,
