@@ -90,6 +90,36 @@ def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
         plot_runs([tmp_path], tmp_path)
 
 
+def test_diverged_training_exits_with_a_message(tmp_path, monkeypatch, capsys):
+    import dva.training
+    from dva.training import TrainingDiverged
+
+    def diverge(*args, **kwargs):
+        raise TrainingDiverged("actor gradient norm 5e+09 at iteration 59 is NaN or above 1e+08", 59, 5e9)
+
+    monkeypatch.setattr(dva.training, "train", diverge)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--task", "cartpole_swingup", "--run-dir", str(tmp_path / "run")])
+    assert exit_info.value.code == 3
+    message = capsys.readouterr().err
+    assert "training stopped: actor gradient norm 5e+09 at iteration 59" in message
+    assert "--state-grad-clip" in message
+
+
+def test_plot_labels_keep_clipped_runs_apart(tmp_path):
+    import json
+
+    from dva.analysis.plots import run_label
+
+    spec = {"algo": "shac", "task": "humanoid", "preset": "cpu", "config": {"state_grad_clip": None}}
+    (tmp_path / "run.json").write_text(json.dumps(spec))
+    exact = run_label(tmp_path)
+    spec["config"]["state_grad_clip"] = 100.0
+    (tmp_path / "run.json").write_text(json.dumps(spec))
+    assert exact == "shac on humanoid (cpu preset)"
+    assert run_label(tmp_path) == "shac on humanoid (cpu preset, state grad clip 100)"
+
+
 def test_analyze_gradients_writes_table_and_figure(tmp_path, capsys):
     main(["analyze", "gradients", "--task", "cartpole_swingup", "--iterations", "4", "--every", "2",
           "--num-envs", "4", "--horizon", "8", "--out", str(tmp_path)])

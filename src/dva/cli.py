@@ -11,6 +11,7 @@ from typing import Annotated, Union
 import tyro
 
 from dva.tasks import TASKS, check_physics, check_task_name
+from dva.training import TrainingDiverged
 
 
 @dataclasses.dataclass
@@ -313,6 +314,10 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as error:  # bad input: one line naming the value and the choices
         print(f"dva: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
+    except TrainingDiverged as error:  # not a bug in dva: say what happened and what to try
+        print(f"dva: training stopped: {error}. Resume from that checkpoint (--resume) with a "
+              "lower learning rate, a shorter horizon or --state-grad-clip.", file=sys.stderr)
+        raise SystemExit(3) from None
 
 
 if __name__ == "__main__":

@@ -29,9 +29,12 @@ def read_curve(run_dir: Path, metric: str) -> dict[str, np.ndarray]:
 
 
 def run_label(run_dir: Path) -> str:
-    """``algo on task`` from the run's ``run.json`` (seeds of one label are averaged)."""
+    """``algo on task`` from the run's ``run.json`` (seeds of one label are averaged); a state
+    gradient clip is part of the label, so clipped and exact runs are not averaged together."""
     spec = json.loads((Path(run_dir) / "run.json").read_text())
-    return f"{spec['algo']} on {spec['task']} ({spec['preset']} preset)"
+    clip = spec.get("config", {}).get("state_grad_clip")
+    variant = f", state grad clip {clip:g}" if clip is not None else ""
+    return f"{spec['algo']} on {spec['task']} ({spec['preset']} preset{variant})"
 
 
 def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
