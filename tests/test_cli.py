@@ -58,7 +58,7 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
     policy video) → plot → eval."""
     run_dir = tmp_path / "run"
     main(["train", "--task", "cartpole_swingup", "--algo", "dva", "--iterations", "2", "--run-dir", str(run_dir),
-          "--eval-every", "2", "--num-envs", "4", "--horizon", "8", "--image-size", "24"])
+          "--eval-every", "2", "--shac.num-envs", "4", "--shac.horizon", "8", "--shac.image-size", "24"])
     log = (run_dir / "progress.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in log[1:]] == ["0", "1", "2"]  # iteration 0 = untrained policy
     assert "dva on cartpole_swingup: return" in capsys.readouterr().out
@@ -95,15 +95,15 @@ def test_diverged_training_exits_with_a_message(tmp_path, monkeypatch, capsys):
     from dva.training import TrainingDiverged
 
     def diverge(*args, **kwargs):
-        raise TrainingDiverged("actor gradient norm 5e+09 at iteration 59 is NaN or above 1e+08", 59, 5e9)
+        raise TrainingDiverged("actor gradient norm 5e+09 is NaN or above 1e+08 at iteration 59", 59, {})
 
     monkeypatch.setattr(dva.training, "train", diverge)
     with pytest.raises(SystemExit) as exit_info:
         main(["train", "--task", "cartpole_swingup", "--run-dir", str(tmp_path / "run")])
     assert exit_info.value.code == 3
     message = capsys.readouterr().err
-    assert "training stopped: actor gradient norm 5e+09 at iteration 59" in message
-    assert "--state-grad-clip" in message
+    assert "training stopped: actor gradient norm 5e+09 is NaN or above 1e+08 at iteration 59" in message
+    assert "--shac.state-grad-clip" in message
 
 
 def test_plot_labels_keep_clipped_runs_apart(tmp_path):

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-from dva.analysis.reference import random_policy_returns
+from dva.evaluation import random_policy_returns
 from dva.tasks import make_task
 from dva.training import train
 
@@ -33,7 +33,7 @@ def random_return(task_name: str) -> float:
 
 def test_shac_on_cartpole_state_learns(tmp_path):
     """SHAC (state observations): about 2 minutes."""
-    run_dir = train("cartpole_swingup", "shac", "cpu", iterations=400, run_dir=tmp_path / "run", eval_every=50)
+    run_dir = train("cartpole_swingup", "shac", preset="cpu", iterations=400, run_dir=tmp_path / "run", eval_every=50)
     assert late_eval_return(run_dir) > 3 * random_return("cartpole_swingup")
 
 
@@ -41,11 +41,11 @@ def test_shac_on_hopper_state_learns_to_hop(tmp_path):
     """SHAC on Hopper with penalty contacts, CPU preset: about 7 minutes. The two 30-minute runs
     in benchmarks/RESULTS.md had their best of the evaluations at 1400–1500 iterations at 4546
     and 6851 (random actions: ≈ −140); 2000 leaves room for a less lucky seed."""
-    run_dir = train("hopper", "shac", "cpu", iterations=1500, run_dir=tmp_path / "run", eval_every=50)
+    run_dir = train("hopper", "shac", preset="cpu", iterations=1500, run_dir=tmp_path / "run", eval_every=50)
     assert late_eval_return(run_dir) > 2000
 
 
 def test_dva_on_cartpole_pixels_beats_random_by_a_wide_margin(tmp_path):
     """D.Va from pixels, the README's main job: about 15 minutes."""
-    run_dir = train("cartpole_swingup", "dva", "cpu", minutes=15, run_dir=tmp_path / "run", eval_every=50)
+    run_dir = train("cartpole_swingup", "dva", preset="cpu", minutes=15, run_dir=tmp_path / "run", eval_every=50)
     assert late_eval_return(run_dir) > 3 * random_return("cartpole_swingup")

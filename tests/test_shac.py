@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms.shac import SHAC, SHACConfig, clip_gradient_per_env, td_lambda_targets
+from dva.envs import PixelObservations
 from dva.tasks import make_task
 
 HORIZON, NUM_ENVS = 6, 2
@@ -19,7 +20,7 @@ HORIZON, NUM_ENVS = 6, 2
 def agent(gradient: str) -> SHAC:
     config = SHACConfig(observation="state", gradient=gradient, num_envs=NUM_ENVS, horizon=HORIZON,
                         actor_hidden=(16,), critic_hidden=(16,), critic_minibatches=2)
-    return SHAC(make_task("cartpole_swingup"), config)
+    return SHAC(PixelObservations(make_task("cartpole_swingup"), NUM_ENVS), config)
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +110,7 @@ def test_state_gradient_clipping_in_the_rollout(setup):
     shac, train, noise = setup
 
     def action_grad(clip):
-        clipped = SHAC(shac.task, dataclasses.replace(shac.config, state_grad_clip=clip))
+        clipped = SHAC(shac.env, dataclasses.replace(shac.config, state_grad_clip=clip))
         return jax.value_and_grad(lambda w: clipped.rollout(train.actor_params, train, noise, w)[0])(
             jnp.zeros_like(noise))
 
@@ -161,7 +162,7 @@ def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     def second_action_gradient(gradient: str, renderer) -> np.ndarray:
         config = SHACConfig(observation="pixels", gradient=gradient, num_envs=NUM_ENVS, horizon=3, image_size=16,
                             actor_hidden=(8,), critic_hidden=(8,), critic_minibatches=2)
-        shac = SHAC(task, config, renderer)
+        shac = SHAC(PixelObservations(task, NUM_ENVS, renderer, config.frame_stack), config)
         train = jax.jit(shac.init)(jax.random.PRNGKey(0))
 
         def second_action(qpos_offset):
@@ -173,5 +174,5 @@ def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     assert np.abs(second_action_gradient("full", SoftRenderer(task, NUM_ENVS, 16))).max() > 0
     assert np.abs(second_action_gradient("decoupled", PixelRenderer(task, NUM_ENVS, 16))).max() == 0.0
     with pytest.raises(ValueError, match="needs a differentiable renderer"):
-        SHAC(task, SHACConfig(observation="pixels", gradient="full", num_envs=NUM_ENVS),
-             PixelRenderer(task, NUM_ENVS, 16))
+        SHAC(PixelObservations(task, NUM_ENVS, PixelRenderer(task, NUM_ENVS, 16)),
+             SHACConfig(observation="pixels", gradient="full", num_envs=NUM_ENVS))

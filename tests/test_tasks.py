@@ -29,6 +29,18 @@ def test_cartpole_reward_and_termination():
     np.testing.assert_allclose(obs, [0.5, 0.4, np.sin(np.pi - 0.2), np.cos(np.pi - 0.2), 1.5], rtol=1e-5, atol=1e-6)
 
 
+def test_cartpole_balance_starts_upright_and_shares_the_swing_up_reward():
+    balance, swingup = make_task("cartpole_balance"), make_task("cartpole_swingup")
+    state = jax.jit(balance.reset, static_argnums=1)(jax.random.PRNGKey(0), 256)
+    angle = np.asarray(state.data.qpos[:, 1])
+    assert np.abs(angle).max() <= np.pi / 60 + 1e-6 and angle.std() > 0.01  # upright ± 3°, random
+    assert np.abs(np.asarray(state.data.qpos[:, 0])).max() == 0.0
+    data = data_with(balance, [0.3, 0.1], [0.2, -0.4])
+    expected = 10 - 0.1**2 - 0.1 * 0.4**2 - 0.05 * 0.3**2 - 0.1 * 0.2**2
+    assert float(balance.reward(data, jnp.zeros(1))) == pytest.approx(expected, rel=1e-5)
+    assert float(swingup.reward(data_with(swingup, [0.3, 0.1], [0.2, -0.4]), jnp.zeros(1))) == pytest.approx(expected, rel=1e-5)
+
+
 def test_hopper_reward_above_and_below_target_height():
     task = make_task("hopper")
     action = jnp.array([0.5, -0.5, 1.0])
@@ -104,7 +116,7 @@ def test_quadruped_reward_and_start_pose():
 
 
 def test_observation_sizes_match_shac(task):
-    expected = {"cartpole_swingup": (5, 1), "hopper": (11, 3), "cheetah": (17, 6), "ant": (37, 8), "humanoid": (76, 21),
+    expected = {"cartpole_swingup": (5, 1), "cartpole_balance": (5, 1), "hopper": (11, 3), "cheetah": (17, 6), "ant": (37, 8), "humanoid": (76, 21),
                 "quadruped": (49, 12)}
     assert (task.obs_dim, task.action_dim) == expected[task.name]
 

@@ -8,7 +8,8 @@ import shutil
 
 import pytest
 
-from dva.training import TrainingDiverged, checkpoint_manager, make_config, train
+from dva.algorithms import config_from_dict, make_config
+from dva.training import TrainingDiverged, checkpoint_manager, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
 
@@ -20,7 +21,7 @@ def rows(run_dir):
 
 def test_train_resume_continues_the_curve(tmp_path):
     run_dir = tmp_path / "run"
-    train("cartpole_swingup", "shac", "cpu", iterations=3, run_dir=run_dir, eval_every=3, checkpoint_every=2, **SMALL)
+    train("cartpole_swingup", "shac", preset="cpu", iterations=3, run_dir=run_dir, eval_every=3, checkpoint_every=2, **SMALL)
     first = rows(run_dir)
     assert [int(r["iteration"]) for r in first] == [0, 1, 2, 3]  # 0: the untrained policy's return
     assert [int(r["env_steps"]) for r in first] == [0, 32, 64, 96]
@@ -37,14 +38,14 @@ def test_train_resume_continues_the_curve(tmp_path):
 
 def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):
     run_dir = tmp_path / "run"
-    train("cartpole_swingup", "shac", "cpu", iterations=1, run_dir=run_dir, checkpoint_every=1, **SMALL)
+    train("cartpole_swingup", "shac", preset="cpu", iterations=1, run_dir=run_dir, checkpoint_every=1, **SMALL)
     for item in (run_dir / "checkpoints" / "1").rglob("*"):
         if item.is_file():
             item.write_bytes(b"garbage")
     with pytest.raises(ValueError, match="checkpoint .* is corrupt or incompatible"):
         train("cartpole_swingup", iterations=1, run_dir=run_dir, resume=True)
     with pytest.raises(ValueError, match="already holds a run"):
-        train("cartpole_swingup", "shac", "cpu", iterations=1, run_dir=run_dir, **SMALL)
+        train("cartpole_swingup", "shac", preset="cpu", iterations=1, run_dir=run_dir, **SMALL)
     shutil.rmtree(run_dir)
     with pytest.raises(ValueError, match="no run to resume"):
         train("cartpole_swingup", iterations=1, run_dir=run_dir, resume=True)
@@ -55,15 +56,26 @@ def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):
     with pytest.raises(ValueError, match="unknown preset .gpu."):
         make_config("cartpole_swingup", "dva", "gpu")
     assert make_config("ant", "shac-pixels", "paper").horizon == 8  # visual SHAC's own horizon
+    with pytest.raises(ValueError, match="'gradient' defines the algorithm 'dva'"):
+        make_config("cartpole_swingup", "dva", "cpu", gradient="full")
+    with pytest.raises(ValueError, match="unknown dva config field 'horizn'; allowed: .*horizon"):
+        make_config("cartpole_swingup", "dva", "cpu", horizn=8)
+
+
+def test_configs_from_older_runs_load_under_the_new_field_names():
+    config = config_from_dict("shac", {"observation": "state", "gradient": "full", "grad_clip": 2.0,
+                                       "max_grad_norm": 5.0, "iterations": 7, "actor_hidden": [16, 8]})
+    assert (config.clip_grad_norm, config.abort_grad_norm, config.lr_decay_iterations) == (2.0, 5.0, 7)
+    assert config.actor_hidden == (16, 8)
 
 
 def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
     run_dir = tmp_path / "run"
-    train("cartpole_swingup", "shac", "cpu", iterations=2, run_dir=run_dir, checkpoint_every=1, **SMALL)
+    train("cartpole_swingup", "shac", preset="cpu", iterations=2, run_dir=run_dir, checkpoint_every=1, **SMALL)
     spec = json.loads((run_dir / "run.json").read_text())
-    spec["config"]["max_grad_norm"] = 1e-9  # every gradient now counts as exploding
+    spec["config"]["abort_grad_norm"] = 1e-9  # every gradient now counts as exploding
     (run_dir / "run.json").write_text(json.dumps(spec))
-    with pytest.raises(TrainingDiverged, match=r"actor gradient norm .* at iteration 3 is NaN or above 1e-09"):
+    with pytest.raises(TrainingDiverged, match=r"actor gradient norm .* is NaN or above abort_grad_norm = 1e-09 at iteration 3"):
         train("cartpole_swingup", iterations=5, run_dir=run_dir, resume=True, checkpoint_every=1)
     assert checkpoint_manager(run_dir).latest_step() == 2
     assert [int(r["iteration"]) for r in rows(run_dir)] == [0, 1, 2]

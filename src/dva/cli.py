@@ -5,11 +5,15 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
+import typing
 from pathlib import Path
-from typing import Annotated, Union
+from typing import Annotated, Optional, Union
 
 import tyro
 
+from dva.algorithms import AlgoName
+from dva.algorithms.shac import SHACConfig
+from dva.configs import PresetName
 from dva.tasks import TASKS, check_physics, check_task_name
 from dva.training import TrainingDiverged
 
@@ -68,21 +72,35 @@ class RenderCommand:
         print(f"wrote {grid_path} and {video_path}")
 
 
+def optional_fields(config_type: type, exclude: tuple[str, ...] = ()) -> type:
+    """A dataclass with every field of ``config_type`` (but ``exclude``) as an optional flag whose
+    default, None, keeps the preset's value: ``dva train --shac.horizon 16``."""
+    hints = typing.get_type_hints(config_type)
+    fields = [(field.name, Optional[hints[field.name]], dataclasses.field(default=None))
+              for field in dataclasses.fields(config_type) if field.name not in exclude]
+    overrides = dataclasses.make_dataclass(f"{config_type.__name__}Overrides", fields, frozen=True)
+    overrides.__doc__ = f"{config_type.__doc__.strip()} Unset: the preset's value."
+    return overrides
+
+
+SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
+
+
 @dataclasses.dataclass
 class TrainCommand:
     """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full), DPG on state or
     visual SHAC (pixels from the differentiable renderer, full gradient)."""
 
     task: str = "cartpole_swingup"
-    algo: str = "dva"
+    algo: AlgoName = "dva"
     """dva | shac | dpg-state | shac-pixels (visual SHAC)"""
-    preset: str = "cpu"
+    preset: PresetName = "cpu"
     """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
     seed: int = 0
     iterations: int | None = None
-    """Stop after this many iterations (default: the preset's)."""
+    """Stop after this many iterations (default: the config's lr_decay_iterations)."""
     minutes: float | None = None
-    """Stop after this much wall-clock time."""
+    """Stop after this much wall-clock time, compilation included."""
     run_dir: Path | None = None
     """Where logs and checkpoints go (default: runs/TASK_ALGO_sSEED_TIME)."""
     resume: bool = False
@@ -91,16 +109,10 @@ class TrainCommand:
     """At the end, write the return plots and a video of the policy into the run directory."""
     eval_every: int = 50
     checkpoint_every: int = 25
-    num_envs: int | None = None
-    """Override the preset's number of parallel envs."""
-    horizon: int | None = None
-    """Override the preset's short horizon h."""
-    image_size: int | None = None
-    """Override the preset's image side (pixels)."""
     physics: str | None = None
     """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
-    state_grad_clip: float | None = None
-    """Per-env, per-step bound on the state gradient in the backward pass (AHAC; default: off)."""
+    shac: SHACOverrides = dataclasses.field(default_factory=SHACOverrides)
+    """Hyperparameters of dva / shac / dpg-state / shac-pixels (unset: the preset's)."""
 
     def run(self) -> None:
         from dva.training import train
@@ -109,10 +121,10 @@ class TrainCommand:
             if self.resume:
                 raise ValueError("--resume needs --run-dir: the run to continue")
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-        run_dir = train(self.task, self.algo, self.preset, self.seed, self.iterations, self.minutes,
-                        self.run_dir, self.resume, self.eval_every, self.checkpoint_every, self.physics,
-                        num_envs=self.num_envs, horizon=self.horizon, image_size=self.image_size,
-                        state_grad_clip=self.state_grad_clip)
+        run_dir = train(self.task, self.algo, preset=self.preset, seed=self.seed, iterations=self.iterations,
+                        minutes=self.minutes, run_dir=self.run_dir, resume=self.resume, eval_every=self.eval_every,
+                        checkpoint_every=self.checkpoint_every, physics=self.physics,
+                        **dataclasses.asdict(self.shac))
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()
@@ -135,7 +147,7 @@ class EvalCommand:
         import jax
         import numpy as np
 
-        from dva.analysis.reference import random_policy_returns
+        from dva.evaluation import random_policy_returns
         from dva.tasks import make_task
         from dva.training import evaluate_run
         from dva.visualize import policy_video
@@ -316,7 +328,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(2) from None
     except TrainingDiverged as error:  # not a bug in dva: say what happened and what to try
         print(f"dva: training stopped: {error}. Resume from that checkpoint (--resume) with a "
-              "lower learning rate, a shorter horizon or --state-grad-clip.", file=sys.stderr)
+              "lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip.", file=sys.stderr)
         raise SystemExit(3) from None
 
 

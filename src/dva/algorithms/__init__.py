@@ -1,1 +1,110 @@
-"""Learning algorithms. D.Va, SHAC and DPG-on-state are one trainer: :mod:`dva.algorithms.shac`."""
+"""The algorithms behind one :class:`~dva.algorithms.base.Agent` protocol, and their registry.
+
+D.Va, SHAC, DPG on state and visual SHAC are one trainer (:mod:`dva.algorithms.shac`) with
+different observations and gradients. :func:`build_agent` puts an algorithm together with its task
+and pixel wrapper; :func:`make_config` with its preset (:mod:`dva.configs`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, Literal, get_args
+
+from dva.algorithms.base import Agent
+from dva.algorithms.shac import SHAC, SHACConfig
+from dva.configs import PRESETS, shac_preset
+from dva.envs import PixelObservations, Renderer
+from dva.tasks import check_task_name, make_task
+
+RendererKind = Literal["warp", "soft"] | None
+
+
+@dataclasses.dataclass(frozen=True)
+class Algorithm:
+    """A registry entry: how to configure and build one algorithm."""
+
+    description: str
+    config_type: type
+    make_agent: Callable[[PixelObservations, Any], Agent]
+    preset: Callable[[str, str], dict]  # (task, preset) → config values
+    defining: dict[str, Any]  # config values that make it this algorithm (not overridable)
+    renderer: Callable[[Any], RendererKind]  # which renderer its config needs
+
+
+def _shac_renderer(config: SHACConfig) -> RendererKind:
+    """Warp's pixels for D.Va; the differentiable renderer where the gradient goes through pixels."""
+    if config.observation == "state":
+        return None
+    return "soft" if config.gradient == "full" else "warp"
+
+
+AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels"]
+ALGORITHMS: dict[str, Algorithm] = {
+    "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
+                     shac_preset, dict(observation="pixels", gradient="decoupled"), _shac_renderer),
+    "shac": Algorithm("SHAC: actor on the state, full gradient", SHACConfig, SHAC,
+                      shac_preset, dict(observation="state", gradient="full"), _shac_renderer),
+    "dpg-state": Algorithm("decoupled gradient, actor on the state (paper Fig 13)", SHACConfig, SHAC,
+                           shac_preset, dict(observation="state", gradient="decoupled"), _shac_renderer),
+    "shac-pixels": Algorithm("visual SHAC: actor on differentiably rendered pixels, full gradient",
+                             SHACConfig, SHAC, lambda task, preset: shac_preset(task, preset, visual_shac=True),
+                             dict(observation="pixels", gradient="full"), _shac_renderer),
+}
+assert set(get_args(AlgoName)) == set(ALGORITHMS)
+
+# run.json files written before fields were renamed still load.
+RENAMED_FIELDS = {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm",
+                  "iterations": "lr_decay_iterations"}
+
+
+def check_algo(algo: str) -> Algorithm:
+    """The registry entry of ``algo``, or a clear error naming the choices."""
+    if algo not in ALGORITHMS:
+        raise ValueError(f"unknown algo {algo!r}; choose one of: {', '.join(ALGORITHMS)}")
+    return ALGORITHMS[algo]
+
+
+def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
+    """The configuration of ``algo`` on ``task`` under ``preset``, with ``overrides`` (None: keep)."""
+    check_task_name(task)
+    entry = check_algo(algo)
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
+    overrides = {key: value for key, value in overrides.items() if value is not None}
+    fields = {field.name for field in dataclasses.fields(entry.config_type)}
+    for key in overrides:
+        if key in entry.defining:
+            raise ValueError(f"{key!r} defines the algorithm {algo!r} and cannot be overridden")
+        if key not in fields:
+            raise ValueError(f"unknown {algo} config field {key!r}; allowed: {', '.join(sorted(fields - set(entry.defining)))}")
+    return entry.config_type(**{**entry.preset(task, preset), **entry.defining, **overrides})
+
+
+def config_from_dict(algo: str, values: dict) -> Any:
+    """A config back from ``run.json`` (lists become tuples; old field names are renamed)."""
+    values = {RENAMED_FIELDS.get(key, key): tuple(value) if isinstance(value, list) else value
+              for key, value in values.items()}
+    return check_algo(algo).config_type(**values)
+
+
+def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int) -> Renderer | None:
+    """A renderer of ``kind`` for ``num_envs`` envs of ``task`` at ``image_size``² pixels."""
+    if kind is None:
+        return None
+    if kind == "warp":
+        from dva.rendering import PixelRenderer
+
+        return PixelRenderer(task, num_envs, image_size)
+    from dva.soft_rendering import SoftRenderer
+
+    return SoftRenderer(task, num_envs, image_size)
+
+
+def build_agent(task_name: str, algo: str, config: Any, physics: str | None = None) -> Agent:
+    """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
+    as long as the agent) and the agent."""
+    entry = check_algo(algo)
+    task = make_task(task_name, physics)
+    renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size)
+    return entry.make_agent(PixelObservations(task, config.num_envs, renderer, config.frame_stack), config)

@@ -7,7 +7,7 @@
   from the differentiable :class:`~dva.soft_rendering.SoftRenderer`.
 
 One :meth:`SHAC.iteration` (jit it) rolls the policy out for ``horizon`` steps over ``num_envs``
-environments (physics, rendering, frame stack, sampling), differentiates the actor loss
+environments (physics, and the rendering and frame stack of :class:`~dva.envs.PixelObservations`), differentiates the actor loss
 ``L = −1/(N h) Σ [Σ_t γ^t r_t + γ^h V'(s_h)]`` through the dynamics, fits the critic to TD-λ
 targets for ``critic_iterations × critic_minibatches`` steps and updates the target critic.
 """
@@ -23,10 +23,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.envs import Observation, PixelObservations
 from dva.networks import Actor, Critic, RunningStats
-from dva.rendering import PixelRenderer, push_frame, reset_frame_stack
-from dva.soft_rendering import SoftRenderer
-from dva.tasks import EnvState, Task
+from dva.tasks import EnvState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,8 +42,8 @@ class SHACConfig:
     critic_lr: float = 2e-4
     final_lr: float = 1e-5
     betas: tuple[float, float] = (0.7, 0.95)
-    grad_clip: float = 1.0
-    max_grad_norm: float = 1e8  # an actor gradient norm above this (or NaN) stops training (ref. code)
+    clip_grad_norm: float = 1.0  # each update's gradients are scaled to at most this global norm
+    abort_grad_norm: float = 1e8  # an actor gradient norm above this (or NaN) stops training (ref. code)
     state_grad_clip: float | None = None
     """Per-env bound on the norm of the gradient w.r.t. (qpos, qvel) as it flows back from one
     step to the one before (AHAC's per-step clipping, spec §7), in units of one env's window return
@@ -58,7 +57,9 @@ class SHACConfig:
     critic_hidden: tuple[int, ...] = (64, 64)
     image_size: int = 84
     frame_stack: int = 3
-    iterations: int = 4000  # length of the learning-rate decay
+    lr_decay_iterations: int = 4000
+    """Iterations over which the learning rates decay linearly to ``final_lr`` (then stay there);
+    also the run's length when neither an iteration count nor a time budget is given."""
 
     def __post_init__(self) -> None:
         if self.observation not in ("pixels", "state"):
@@ -79,8 +80,7 @@ class TrainState(struct.PyTreeNode):
     actor_opt_state: optax.OptState
     critic_opt_state: optax.OptState
     obs_stats: RunningStats  # running mean/std of the state observation
-    env: EnvState
-    frames: jax.Array  # (N, H, W, 3·k) stacked frames (uint8; float from SoftRenderer); (N, 0) for state
+    env: EnvState  # with its frame stack in env.pixels (uint8; float from SoftRenderer; (N, 0) for state)
     episode_return: jax.Array  # (N,) undiscounted return of the running episodes
     key: jax.Array
     iteration: jax.Array
@@ -96,63 +96,63 @@ class Trajectory(struct.PyTreeNode):
 
 
 class SHAC:
-    """The trainer; see the module docstring. ``renderer`` is required for pixel observations."""
+    """The trainer (an :class:`~dva.algorithms.base.Agent`); see the module docstring. Pixel
+    observations need ``env`` to render them."""
 
-    def __init__(self, task: Task, config: SHACConfig, renderer: PixelRenderer | SoftRenderer | None = None) -> None:
+    metric_names = ("actor_loss", "actor_grad_norm", "critic_loss")
+
+    def __init__(self, env: PixelObservations, config: SHACConfig) -> None:
+        if env.num_envs != config.num_envs:
+            raise ValueError(f"the env wrapper runs {env.num_envs} envs; config.num_envs is {config.num_envs}")
         if config.observation == "pixels":
-            if renderer is None or renderer.num_envs != config.num_envs:
-                raise ValueError("pixel observations need a renderer with num_envs == config.num_envs")
-            if config.gradient == "full" and not renderer.differentiable:
+            if not env.has_pixels:
+                raise ValueError("pixel observations need an env wrapper with a renderer")
+            if config.gradient == "full" and not env.differentiable_pixels:
                 raise ValueError("gradient 'full' through pixels needs a differentiable renderer (SoftRenderer); "
                                  "the Warp renderer is not — use gradient='decoupled' (D.Va)")
-        self.task, self.config, self.renderer = task, config, renderer
-        self.actor = Actor(task.action_dim, config.actor_hidden, pixels=config.observation == "pixels",
+        self.env, self.task, self.config = env, env.task, config
+        self.actor = Actor(self.task.action_dim, config.actor_hidden, pixels=config.observation == "pixels",
                            trunk=config.trunk)
         self.critic = Critic(config.critic_hidden)
 
         def optimizer(lr: float, steps: int) -> optax.GradientTransformation:
             """Adam after global-norm clipping, learning rate decayed linearly over ``steps``."""
             schedule = optax.linear_schedule(lr, config.final_lr, steps)
-            return optax.chain(optax.clip_by_global_norm(config.grad_clip),
+            return optax.chain(optax.clip_by_global_norm(config.clip_grad_norm),
                                optax.adam(schedule, b1=config.betas[0], b2=config.betas[1]))
 
-        self.actor_opt = optimizer(config.actor_lr, config.iterations)
+        self.actor_opt = optimizer(config.actor_lr, config.lr_decay_iterations)
         # The critic takes critic_iterations × critic_minibatches steps per iteration.
         self.critic_opt = optimizer(config.critic_lr,
-                                    config.iterations * config.critic_iterations * config.critic_minibatches)
+                                    config.lr_decay_iterations * config.critic_iterations * config.critic_minibatches)
+
+    @property
+    def env_steps_per_iteration(self) -> int:
+        return self.config.num_envs * self.config.horizon
 
     # ---- set-up -------------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
         """Fresh networks, optimisers and environments."""
         env_key, actor_key, critic_key, key = jax.random.split(key, 4)
-        env = self.task.reset(env_key, self.config.num_envs)
-        frames = self.first_frames(env)
-        actor_params = self.actor.init(actor_key, self.observe(env, frames, RunningStats.create(self.task.obs_dim)))
+        env = self.env.reset(env_key)
+        actor_params = self.actor.init(actor_key, self.observe(env, RunningStats.create(self.task.obs_dim)))
         critic_params = self.critic.init(critic_key, env.obs)
         return TrainState(
             actor_params=actor_params, critic_params=critic_params, target_critic_params=critic_params,
             actor_opt_state=self.actor_opt.init(actor_params), critic_opt_state=self.critic_opt.init(critic_params),
-            obs_stats=RunningStats.create(self.task.obs_dim), env=env, frames=frames,
+            obs_stats=RunningStats.create(self.task.obs_dim), env=env,
             episode_return=jnp.zeros(self.config.num_envs), key=key, iteration=jnp.zeros((), jnp.int32),
         )
 
-    def first_frames(self, env: EnvState) -> jax.Array:
-        """The frame stack of freshly reset environments (first frame tiled)."""
-        if self.config.observation != "pixels":
-            return jnp.zeros((self.config.num_envs, 0), jnp.uint8)
-        return reset_frame_stack(self.renderer(env.data.qpos), self.config.frame_stack)
-
-    def next_frames(self, frames: jax.Array, env: EnvState) -> jax.Array:
-        """The frame stack after a step: the new frame appended (tiled where an episode restarted)."""
-        if self.config.observation != "pixels":
-            return frames
-        return push_frame(frames, self.renderer(env.data.qpos), env.done)
-
-    def observe(self, env: EnvState, frames: jax.Array, stats: RunningStats) -> jax.Array:
+    def observe(self, env: EnvState, stats: RunningStats) -> jax.Array:
         """What the actor sees: the stacked frames, or the normalised state."""
+        return self.actor_input(self.env.observe(env), stats)
+
+    def actor_input(self, observation: Observation, stats: RunningStats) -> jax.Array:
+        """The actor's input from an observation: its pixels, or its normalised state."""
         if self.config.observation == "pixels":
-            return frames
-        return stats.normalize(env.obs)
+            return observation["pixels"]
+        return stats.normalize(observation["state"])
 
     # ---- the policy ---------------------------------------------------------------------------
     def pre_tanh_action(self, actor_params: dict, observation: jax.Array, noise: jax.Array | None) -> jax.Array:
@@ -168,13 +168,13 @@ class SHAC:
         it does not flow through the observation. ``action_offset`` (h, N, A), added to the
         pre-tanh actions, exposes the gradient with respect to the open-loop actions.
         """
-        cfg, task = self.config, self.task
+        cfg = self.config
         value = lambda obs: self.critic.apply(train.target_critic_params, train.obs_stats.normalize(obs))
 
         def step(carry, inputs):
-            env, frames, discount, discounted_sum, episode_return = carry
+            env, discount, discounted_sum, episode_return = carry
             eps, offset = inputs
-            observation = self.observe(env, frames, train.obs_stats)
+            observation = self.observe(env, train.obs_stats)
             if cfg.gradient == "decoupled":
                 observation = jax.lax.stop_gradient(observation)
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
@@ -187,8 +187,7 @@ class SHAC:
                 qpos, qvel = clip_gradient_per_env((env.data.qpos, env.data.qvel),
                                                    cfg.state_grad_clip / (cfg.num_envs * len(noise)))
                 env = env.replace(data=env.data.replace(qpos=qpos, qvel=qvel))
-            env = task.step(env, jnp.tanh(pre_tanh))
-            frames = self.next_frames(frames, env)
+            env = self.env.step(env, jnp.tanh(pre_tanh))
             next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
             discounted_sum = discounted_sum + discount * env.reward
             discount = discount * cfg.gamma
@@ -196,16 +195,16 @@ class SHAC:
             ended = jnp.where(env.done, discounted_sum + discount * next_value, 0.0)
             episode_return = episode_return + jax.lax.stop_gradient(env.reward)
             finished_return = jnp.where(env.done, episode_return, 0.0)
-            carry = (env, frames, jnp.where(env.done, 1.0, discount), jnp.where(env.done, 0.0, discounted_sum),
+            carry = (env, jnp.where(env.done, 1.0, discount), jnp.where(env.done, 0.0, discounted_sum),
                      jnp.where(env.done, 0.0, episode_return))
             out = (ended, critic_obs, jax.lax.stop_gradient(env.reward), jax.lax.stop_gradient(next_value),
                    env.done, finished_return, env.obs, observation, pre_tanh, actor_vjp)
             return carry, out
 
         num_envs = cfg.num_envs
-        carry = (train.env, train.frames, jnp.ones(num_envs), jnp.zeros(num_envs), train.episode_return)
+        carry = (train.env, jnp.ones(num_envs), jnp.zeros(num_envs), train.episode_return)
         offsets = jnp.zeros_like(noise) if action_offset is None else action_offset
-        (env, frames, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, (noise, offsets))
+        (env, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, (noise, offsets))
         ended, critic_obs, reward, next_value, done, finished_return, visited_obs, observations, actions, vjps = out
         # Episodes still running at the end of the window bootstrap from the target critic.
         tail = jnp.where(done[-1], 0.0, discounted_sum + discount * value(env.obs))
@@ -216,7 +215,7 @@ class SHAC:
                  "mean_reward": reward.mean()}
         # The actor's inputs, pre-tanh actions and (decoupled) backward passes, per step.
         taken = {"observations": observations, "actions": actions, "actor_vjp": vjps}
-        return loss, (env, frames, episode_return, trajectory, visited_obs, stats, taken)
+        return loss, (env, episode_return, trajectory, visited_obs, stats, taken)
 
     def actor_gradient(self, actor_params: dict, train: TrainState, noise: jax.Array):
         """``(loss, aux, ∇θ loss)`` of :meth:`rollout`.
@@ -273,9 +272,9 @@ class SHAC:
         key, noise_key, critic_key = jax.random.split(train.key, 3)
         noise = jax.random.normal(noise_key, (cfg.horizon, cfg.num_envs, self.task.action_dim))
         loss, aux, grads = self.actor_gradient(train.actor_params, train, noise)
-        env, frames, episode_return, trajectory, visited_obs, stats, _ = aux
+        env, episode_return, trajectory, visited_obs, stats, _ = aux
         grad_norm = optax.tree.norm(grads)
-        healthy = jnp.isfinite(grad_norm) & (grad_norm <= cfg.max_grad_norm)
+        healthy = jnp.isfinite(grad_norm) & (grad_norm <= cfg.abort_grad_norm)
         updates, actor_opt_state = self.actor_opt.update(grads, train.actor_opt_state, train.actor_params)
         actor_params = optax.apply_updates(train.actor_params, updates)
         # A bad gradient leaves the actor untouched; the training loop stops on it.
@@ -289,36 +288,26 @@ class SHAC:
         train = train.replace(
             actor_params=actor_params, critic_params=critic_params, target_critic_params=target,
             actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
-            obs_stats=train.obs_stats.update(visited_obs), env=env, frames=frames,
+            obs_stats=train.obs_stats.update(visited_obs), env=env,
             episode_return=episode_return, key=key, iteration=train.iteration + 1,
         )
         metrics = {"actor_loss": loss, "actor_grad_norm": grad_norm, "critic_loss": critic_loss,
                    "healthy": healthy, **stats}
         return train, metrics
 
-    # ---- evaluation ---------------------------------------------------------------------------
-    def evaluate(self, actor_params: dict, obs_stats: RunningStats, key: jax.Array, record: bool = False):
-        """Deterministic policy (``tanh(μ)``) over one full episode per env: returns (N,).
+    # ---- the agent's policy ------------------------------------------------------------------
+    def policy(self, train: TrainState) -> tuple[dict, RunningStats]:
+        """What the deterministic policy needs: the actor and the state statistics."""
+        return train.actor_params, train.obs_stats
 
-        With ``record=True`` also returns what a video needs, per step: ``qpos`` (T, N, nq) and,
-        for pixel observations, the newest frame the actor saw (T, N, H, W, 3).
-        """
-        env = self.task.reset(key, self.config.num_envs)
-        frames = self.first_frames(env)
+    def act(self, policy: tuple[dict, RunningStats], observation: Observation) -> jax.Array:
+        """The deterministic action ``tanh(μ)``."""
+        actor_params, obs_stats = policy
+        return jnp.tanh(self.pre_tanh_action(actor_params, self.actor_input(observation, obs_stats), None))
 
-        def step(carry, _):
-            env, frames, total, running = carry
-            action = self.pre_tanh_action(actor_params, self.observe(env, frames, obs_stats), None)
-            env = self.task.step(env, jnp.tanh(action))
-            frames = self.next_frames(frames, env)
-            total = total + running * env.reward
-            shown = (env.data.qpos, frames[..., -3:]) if record else None
-            return (env, frames, total, running * (1.0 - env.done)), shown
-
-        zeros = jnp.zeros(self.config.num_envs)
-        (_, _, total, _), shown = jax.lax.scan(step, (env, frames, zeros, zeros + 1.0), None,
-                                               length=self.task.episode_length)
-        return (total, *shown) if record else total
+    def abort_reason(self, metrics: dict) -> str:
+        return (f"actor gradient norm {float(metrics['actor_grad_norm']):.3g} is NaN or above "
+                f"abort_grad_norm = {self.config.abort_grad_norm:.3g}")
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1,))

@@ -3,7 +3,6 @@ backward), rendering, actor forward/backward, critic fitting."""
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import jax
@@ -15,7 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from dva.algorithms.shac import SHACConfig  # noqa: E402
 from dva.analysis.bench import markdown_table, write_csv  # noqa: E402
 from dva.analysis.profile import iteration_breakdown, per_million_steps  # noqa: E402
-from dva.training import RunSpec, build, make_config  # noqa: E402
+from dva.algorithms import build_agent, make_config  # noqa: E402
 
 
 def measure_iteration(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0,
@@ -23,7 +22,7 @@ def measure_iteration(task: str, algo: str = "dva", preset: str = "cpu", seed: i
     """The configuration and :func:`iteration_breakdown` of ``algo`` on ``task``, timed after one
     iteration (so the state is a realistic one, not the reset)."""
     config = make_config(task, algo, preset, **overrides)
-    agent, _ = build(RunSpec(task, algo, preset, seed, dataclasses.asdict(config)))  # agent keeps the renderer
+    agent = build_agent(task, algo, config)
     state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
     state, _ = jax.jit(agent.iteration)(state)
     return config, iteration_breakdown(agent, state)

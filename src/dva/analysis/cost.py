@@ -10,7 +10,6 @@ process's resident set would mix all tasks measured before, and the compiler's o
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from tqdm import tqdm  # noqa: E402
 
 from dva.algorithms.shac import SHAC, TrainState  # noqa: E402
 from dva.analysis.bench import markdown_table, timed, write_csv  # noqa: E402
-from dva.training import RunSpec, build, make_config  # noqa: E402
+from dva.algorithms import build_agent, make_config  # noqa: E402
 
 COMPARED = ("dva", "shac-pixels")  # the method and its baseline (paper's "SHAC + diff. rendering")
 PAPER_BACKWARD_S = {  # spec §4, Table 1 (RTX 4080): (D.Va, visual SHAC)
@@ -71,7 +70,7 @@ def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image
     for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
         for algo in COMPARED:
             config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size)
-            agent, _ = build(RunSpec(task, algo, "paper", seed, dataclasses.asdict(config)))  # agent keeps the renderer
+            agent = build_agent(task, algo, config)
             state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
             rows.append({"task": task, "algo": algo, **gradient_cost(agent, state)})
     return rows

@@ -18,8 +18,7 @@ from tqdm import tqdm  # noqa: E402
 
 from dva.algorithms.shac import SHAC  # noqa: E402
 from dva.analysis.bench import write_csv  # noqa: E402
-from dva.tasks import make_task  # noqa: E402
-from dva.training import make_config  # noqa: E402
+from dva.algorithms import build_agent, make_config  # noqa: E402
 
 FIELDS = ["iteration", "cosine", "apg_norm", "dpg_norm", "train_return"]
 
@@ -29,8 +28,8 @@ def compare_gradients(task_name: str, iterations: int, every: int, seed: int = 0
     """Train SHAC (state, full gradient) for ``iterations``; every ``every`` iterations record the
     cosine similarity and norms of APG and DPG at the current parameters."""
     config = make_config(task_name, "shac", preset, **overrides)
-    task = make_task(task_name)
-    full, decoupled = SHAC(task, config), SHAC(task, dataclasses.replace(config, gradient="decoupled"))
+    full = build_agent(task_name, "shac", config)
+    decoupled, task = SHAC(full.env, dataclasses.replace(config, gradient="decoupled")), full.task
 
     @jax.jit
     def both_gradients(state, key):

@@ -2,7 +2,7 @@
 
 Each pair is trained with the same preset and seed (no evaluations: only the norms matter). The
 divergence guard is lifted to NaN only — an update from a huge gradient is still clipped to
-``grad_clip`` — so the norm can be followed as far as it goes; a run that turns NaN ends there
+``clip_grad_norm`` — so the norm can be followed as far as it goes; a run that turns NaN ends there
 and the report says where.
 """
 
@@ -37,15 +37,15 @@ def gradient_norms(tasks: list[str], iterations: int, out_dir: Path, seed: int =
             shutil.rmtree(run_dir, ignore_errors=True)  # a fresh run each time the analysis runs
             diverged: TrainingDiverged | None = None
             try:
-                train(task, algo, preset, seed, iterations, None, run_dir, eval_every=None,
-                      checkpoint_every=iterations, max_grad_norm=float("inf"), **overrides)
+                train(task, algo, preset=preset, seed=seed, iterations=iterations, run_dir=run_dir, eval_every=None,
+                      checkpoint_every=iterations, abort_grad_norm=float("inf"), **overrides)
             except TrainingDiverged as error:
                 diverged = error
             curve = read_curve(run_dir, "actor_grad_norm")
             norms = list(curve["actor_grad_norm"])
             steps = list(range(1, len(norms) + 1))
             if diverged is not None:  # the rejected update's norm was not logged
-                norms.append(diverged.grad_norm)
+                norms.append(float(diverged.metrics["actor_grad_norm"]))
                 steps.append(diverged.iteration)
             rows += [{"task": task, "algo": algo, "iteration": i, "actor_grad_norm": g} for i, g in zip(steps, norms)]
             finite = np.array([g for g in norms if np.isfinite(g)])

@@ -34,7 +34,7 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
 
     def forward(p, s, n):  # the loss, plus what the actor and critic timings below take as input
         loss, aux = agent.rollout(p, s, n)
-        return loss, aux[-1]["observations"], aux[3]
+        return loss, aux[-1]["observations"], aux[2]
 
     _, times["rollout_forward"], (_, observations, trajectory) = timed(jax.jit(forward), params, state, noise)
     actor_forward = jax.jit(lambda p, obs: jax.lax.map(lambda o: agent.actor.apply(p, o)[0].sum(), obs))
@@ -53,8 +53,8 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
         times["actor_backward"] = timed(actor_backward, aux[-1]["actor_vjp"], grad)[1]
     critic = jax.jit(agent.critic_update)
     times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
-    if agent.renderer is not None:
-        render = jax.jit(lambda q: jax.lax.map(lambda _: agent.renderer(q).sum(dtype=jnp.int32), jnp.arange(cfg.horizon)))
+    if agent.env.renderer is not None:
+        render = jax.jit(lambda q: jax.lax.map(lambda _: agent.env.renderer(q).sum(dtype=jnp.int32), jnp.arange(cfg.horizon)))
         times["render"] = timed(render, state.env.data.qpos)[1]
     else:
         times["render"] = 0.0

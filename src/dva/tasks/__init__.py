@@ -5,13 +5,13 @@ from __future__ import annotations
 import functools
 
 from dva.tasks.base import CONTROL_DT, EnvState, Task
-from dva.tasks.cartpole import CartpoleSwingup
+from dva.tasks.cartpole import CartpoleBalance, CartpoleSwingup
 from dva.tasks.legged import Ant, Humanoid, Quadruped
 from dva.tasks.physics import PHYSICS, check_physics
 from dva.tasks.planar import Cheetah, Hopper
 
 TASKS: dict[str, type[Task]] = {
-    cls.name: cls for cls in (CartpoleSwingup, Hopper, Cheetah, Ant, Humanoid, Quadruped)
+    cls.name: cls for cls in (CartpoleSwingup, CartpoleBalance, Hopper, Cheetah, Ant, Humanoid, Quadruped)
 }
 
 

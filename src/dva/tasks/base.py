@@ -45,6 +45,9 @@ class EnvState(struct.PyTreeNode):
     step_count: jax.Array  # (N,) int32, steps taken in the current episode
     prev_action: jax.Array  # (N, action_dim) last action applied (part of some observations)
     key: jax.Array  # (N, 2) per-env random keys for resets
+    # (N, H, W, 3·k) stacked camera frames, kept up to date by dva.envs.PixelObservations (which
+    # sets it to an empty (N, 0) array when it renders nothing); None on a bare task's state.
+    pixels: jax.Array | None = None
 
     @property
     def done(self) -> jax.Array:
@@ -184,7 +187,7 @@ class Task(abc.ABC):
         env_keys, reset_keys = jax.vmap(jax.random.split, out_axes=1)(state.key)
         reset_data, reset_obs = jax.vmap(self._reset_one)(reset_keys)
         data = jax.tree.map(lambda r, d: _where_env(done, r, d), reset_data, data)
-        return EnvState(
+        return state.replace(  # a wrapper's fields (pixels) pass through; the wrapper updates them
             data=data,
             obs=_where_env(done, reset_obs, obs),
             final_obs=jnp.where(finite[:, None], obs, 0.0),

@@ -1,4 +1,4 @@
-"""Cart-pole swing-up: the pole starts hanging down and must be swung up and balanced."""
+"""Cart-pole: swing-up (the pole starts hanging down) and balance (it starts upright)."""
 
 from __future__ import annotations
 
@@ -46,3 +46,22 @@ class CartpoleSwingup(Task):
 
     def is_terminated(self, data: mjx.Data) -> jax.Array:
         return jnp.abs(data.qpos[0]) >= self.cart_limit
+
+
+class CartpoleBalance(CartpoleSwingup):
+    """DMC's balance variant: the pole starts upright (±3°, velocities ±0.05) and must stay up.
+
+    Same model, reward, observation, termination and 240-step episodes as the swing-up, so its
+    returns read the same way (at most 2400). A fast sanity task: under random actions the pole
+    falls within about a second.
+    """
+
+    name = "cartpole_balance"
+    initial_angle = jnp.pi / 60
+
+    def initial_state(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        angle_key, vel_key = jax.random.split(key)
+        angle = jax.random.uniform(angle_key, (), minval=-self.initial_angle, maxval=self.initial_angle)
+        qpos = jnp.stack([jnp.zeros_like(angle), angle])
+        qvel = jax.random.uniform(vel_key, (2,), minval=-0.05, maxval=0.05)
+        return qpos, qvel

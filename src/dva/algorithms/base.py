@@ -1,0 +1,44 @@
+"""The protocol every algorithm implements, so that one training loop (:func:`dva.training.train`)
+serves them all: budget, progress bar, logs, evaluation, checkpoints, resume, divergence guard."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, TypeVar
+
+import jax
+
+from dva.envs import Observation, PixelObservations
+
+State = TypeVar("State")  # a pytree holding everything an iteration reads and writes
+
+class Agent(Protocol[State]):
+    """An algorithm: a pure, jittable ``iteration`` over a pytree state, plus its policy.
+
+    ``iteration`` returns scalar metrics: ``healthy`` (False stops training: a NaN or exploding
+    update, which the agent must not have applied), ``finished_return_sum`` and
+    ``finished_episodes`` (training episodes that ended this iteration), and the names in
+    ``metric_names``, which the loop logs to CSV and TensorBoard. The state counts its
+    iterations in ``state.iteration``.
+    """
+
+    env: PixelObservations  # what the agent trains in (its renderer stays alive with it)
+    config: Any  # a frozen dataclass, saved in run.json
+    metric_names: tuple[str, ...]
+
+    @property
+    def env_steps_per_iteration(self) -> int: ...
+
+    def init(self, key: jax.Array) -> State:
+        """Fresh networks, optimisers, environments (and buffers)."""
+
+    def iteration(self, state: State) -> tuple[State, dict[str, jax.Array]]:
+        """One training iteration (the loop jits it and donates ``state``)."""
+
+    def policy(self, state: State) -> Any:
+        """The parameters :meth:`act` needs (a pytree), taken from the training state."""
+
+    def act(self, policy: Any, observation: Observation) -> jax.Array:
+        """The deterministic action in [−1, 1] for a batch of observations (evaluation)."""
+
+    def abort_reason(self, metrics: dict[str, Any]) -> str:
+        """Why an unhealthy iteration stops training, naming the value and the limit."""

@@ -1,0 +1,75 @@
+"""How an algorithm observes a task: the pixel-observation wrapper and the renderer protocol.
+
+Algorithms never call a renderer themselves. They step a :class:`PixelObservations` wrapper, which
+renders after every reset and step, keeps a stack of the last ``frame_stack`` frames in
+``EnvState.pixels`` and hands out observations as ``{"state": …, "pixels": …}``. Any renderer
+with the :class:`Renderer` interface works: MuJoCo's Warp ray-tracer
+(:class:`~dva.rendering.PixelRenderer`, uint8, not differentiable) or the pure-JAX
+:class:`~dva.soft_rendering.SoftRenderer` (float, differentiable).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import jax
+import jax.numpy as jnp
+
+from dva.rendering import push_frame, reset_frame_stack
+from dva.tasks import EnvState, Task
+
+
+class Renderer(Protocol):
+    """Renders a batch of ``qpos`` (num_envs, nq) from the task's pixel camera: (num_envs, H, W, 3)."""
+
+    num_envs: int
+    differentiable: bool  # whether gradients flow from the pixels back to qpos
+
+    def __call__(self, qpos: jax.Array) -> jax.Array: ...
+
+
+Observation = dict[str, jax.Array]  # {"state": (N, obs_dim), "pixels": (N, H, W, 3·k) or (N, 0)}
+
+
+class PixelObservations:
+    """``num_envs`` copies of ``task`` observed through ``renderer`` with ``frame_stack`` frames.
+
+    Pure and jittable like the task itself: ``reset(key)`` and ``step(env, action)`` return an
+    :class:`EnvState` whose ``pixels`` hold the frame stack (restarted, first frame tiled, where an
+    episode restarts). Without a renderer the pixels are an empty (N, 0) array, so state-only and
+    pixel algorithms share one code path.
+    """
+
+    def __init__(self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3) -> None:
+        if renderer is not None and renderer.num_envs != num_envs:
+            raise ValueError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
+        if not isinstance(frame_stack, int) or frame_stack < 1:
+            raise ValueError(f"frame_stack {frame_stack!r} is not allowed; use an int ≥ 1")
+        self.task, self.num_envs, self.renderer, self.frame_stack = task, num_envs, renderer, frame_stack
+
+    @property
+    def has_pixels(self) -> bool:
+        return self.renderer is not None
+
+    @property
+    def differentiable_pixels(self) -> bool:
+        return self.renderer is not None and self.renderer.differentiable
+
+    def reset(self, key: jax.Array) -> EnvState:
+        """Fresh episodes with their first frame stacks."""
+        env = self.task.reset(key, self.num_envs)
+        if self.renderer is None:
+            return env.replace(pixels=jnp.zeros((self.num_envs, 0), jnp.uint8))
+        return env.replace(pixels=reset_frame_stack(self.renderer(env.data.qpos), self.frame_stack))
+
+    def step(self, env: EnvState, action: jax.Array) -> EnvState:
+        """One control step of the task, then the new frame pushed onto the stack."""
+        env = self.task.step(env, action)
+        if self.renderer is None:
+            return env
+        return env.replace(pixels=push_frame(env.pixels, self.renderer(env.data.qpos), env.done))
+
+    @staticmethod
+    def observe(env: EnvState) -> Observation:
+        """What a policy may look at."""
+        return {"state": env.obs, "pixels": env.pixels}

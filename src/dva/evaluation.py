@@ -1,0 +1,48 @@
+"""One evaluation for every algorithm and for the random-policy reference: full episodes, one
+per env, from fresh resets."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from dva.envs import Observation, PixelObservations
+from dva.tasks import Task
+
+Policy = Callable[[Observation, jax.Array], jax.Array]  # (observation, key) → action in [−1, 1]
+
+
+def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, record: bool = False):
+    """Undiscounted return of one full episode per env under ``policy``: (N,).
+
+    Episodes that end early stop counting (the auto-reset continues them unseen). With
+    ``record=True`` also returns, per step, ``qpos`` (T, N, nq) and the newest frame the policy saw
+    (T, N, H, W, 3; (T, N, 0) without pixels) — what a video needs.
+    """
+    reset_key, policy_key = jax.random.split(key)
+    state = env.reset(reset_key)
+
+    def step(carry, step_key):
+        state, total, running = carry
+        state = env.step(state, policy(env.observe(state), step_key))
+        total = total + running * state.reward
+        shown = (state.data.qpos, state.pixels[..., -3:]) if record else None
+        return (state, total, running * (1.0 - state.done)), shown
+
+    ones = jnp.ones(env.num_envs)
+    keys = jax.random.split(policy_key, env.task.episode_length)
+    (_, total, _), shown = jax.lax.scan(step, (state, 0.0 * ones, ones), keys)
+    return (total, *shown) if record else total
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def random_policy_returns(task: Task, key: jax.Array, num_envs: int) -> jax.Array:
+    """The reference a trained policy is judged against: uniform random actions in [−1, 1], (N,)."""
+
+    def uniform(_observation: Observation, step_key: jax.Array) -> jax.Array:
+        return jax.random.uniform(step_key, (num_envs, task.action_dim), minval=-1.0, maxval=1.0)
+
+    return evaluate_policy(PixelObservations(task, num_envs), uniform, key)
