@@ -27,7 +27,7 @@ from dva.training import load_run
 
 
 def audit(run_dir: Path, num_envs: int, steps: int) -> list:
-    spec, agent, _, state = load_run(run_dir)
+    spec, agent, state = load_run(run_dir)
     task = agent.task
     if agent.config.observation != "state" or task.physics != "penalty":
         raise ValueError(f"{run_dir}: the audit replays state-observation runs on penalty physics")

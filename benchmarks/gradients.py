@@ -79,7 +79,7 @@ def trained_policy(run_dir: Path) -> tuple[str, str, Callable[[jax.Array], jax.A
     """(task, physics, deterministic policy) of a state-observation run's latest checkpoint."""
     from dva.training import load_run
 
-    spec, agent, _, state = load_run(run_dir)
+    spec, agent, state = load_run(run_dir)
     if agent.config.observation != "state":
         raise ValueError(f"{run_dir} learned from pixels; --runs takes state-observation runs (shac, dpg-state)")
 
