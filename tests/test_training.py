@@ -6,6 +6,7 @@ import csv
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from dva.algorithms import config_from_dict, make_config
@@ -79,3 +80,24 @@ def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tm
         train("cartpole_swingup", iterations=5, run_dir=run_dir, resume=True, checkpoint_every=1)
     assert checkpoint_manager(run_dir).latest_step() == 2
     assert [int(r["iteration"]) for r in rows(run_dir)] == [0, 1, 2]
+
+
+def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
+    """DrQ-v2 through the same loop: its replay buffer is part of the checkpointed state."""
+    from dva.training import load_run
+
+    run_dir = tmp_path / "run"
+    tiny = dict(num_envs=2, image_size=16, batch_size=4, hidden=(8,), feature_dim=8, replay_size=64, seed_steps=4,
+                updates_per_iteration=1)
+    train("cartpole_balance", "drqv2", preset="cpu", iterations=4, run_dir=run_dir, eval_every=4,
+          checkpoint_every=4, **tiny)
+    train("cartpole_balance", iterations=3, run_dir=run_dir, resume=True, eval_every=7, checkpoint_every=7)
+    log = rows(run_dir)
+    assert [int(r["iteration"]) for r in log] == list(range(8))
+    assert [int(r["env_steps"]) for r in log] == [4 * i for i in range(8)]  # 2 envs × action repeat 2
+    # Updates start once every env holds one 6-step sequence (2 earlier frames + o_t + 3 steps).
+    assert log[5]["critic_loss"] == "nan" and log[6]["critic_loss"] not in ("", "nan")
+    _, agent, state = load_run(run_dir)
+    assert int(state.iteration) == 7 and int(state.replay.current_index) == 7  # 4 steps + 3 after resuming
+    frames = np.asarray(state.replay.experience.frame[:, :7])
+    assert frames.reshape(2, 7, -1).max(axis=-1).min() > 0  # all seven steps of both envs were kept

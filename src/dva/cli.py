@@ -11,7 +11,8 @@ from typing import Annotated, Optional, Union
 
 import tyro
 
-from dva.algorithms import AlgoName
+from dva.algorithms import ALGORITHMS, AlgoName
+from dva.algorithms.drqv2 import DrQV2Config
 from dva.algorithms.shac import SHACConfig
 from dva.configs import PresetName
 from dva.tasks import TASKS, check_physics, check_task_name
@@ -84,6 +85,8 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = ()) -> type:
 
 
 SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
+DrQV2Overrides = optional_fields(DrQV2Config)
+CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config}  # TrainCommand field → the config it overrides
 
 
 @dataclasses.dataclass
@@ -93,7 +96,7 @@ class TrainCommand:
 
     task: str = "cartpole_swingup"
     algo: AlgoName = "dva"
-    """dva | shac | dpg-state | shac-pixels (visual SHAC)"""
+    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2"""
     preset: PresetName = "cpu"
     """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
     seed: int = 0
@@ -113,6 +116,19 @@ class TrainCommand:
     """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
     shac: SHACOverrides = dataclasses.field(default_factory=SHACOverrides)
     """Hyperparameters of dva / shac / dpg-state / shac-pixels (unset: the preset's)."""
+    drqv2: DrQV2Overrides = dataclasses.field(default_factory=DrQV2Overrides)
+    """Hyperparameters of drqv2 (unset: the preset's)."""
+
+    def config_overrides(self) -> dict:
+        """The flags of this algorithm's group; a clear error for another group's."""
+        overrides = {}
+        for group, config_type in CONFIG_GROUPS.items():
+            values = {k: v for k, v in dataclasses.asdict(getattr(self, group)).items() if v is not None}
+            if config_type is ALGORITHMS[self.algo].config_type:
+                overrides = values
+            elif values:
+                raise ValueError(f"--{group}.* flags ({', '.join(values)}) do not apply to --algo {self.algo}")
+        return overrides
 
     def run(self) -> None:
         from dva.training import train
@@ -124,7 +140,7 @@ class TrainCommand:
         run_dir = train(self.task, self.algo, preset=self.preset, seed=self.seed, iterations=self.iterations,
                         minutes=self.minutes, run_dir=self.run_dir, resume=self.resume, eval_every=self.eval_every,
                         checkpoint_every=self.checkpoint_every, physics=self.physics,
-                        **dataclasses.asdict(self.shac))
+                        **self.config_overrides())
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()

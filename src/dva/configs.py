@@ -42,6 +42,26 @@ SHAC_CPU_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=4000)
                                    for task in ("hopper", "cheetah", "ant", "humanoid", "quadruped")}
 
 
+# ---- DrQ-v2 (spec §3) ----------------------------------------------------------------------------
+DRQV2_PAPER: dict[str, dict] = {
+    "cartpole_swingup": dict(num_envs=16, updates_per_iteration=8),
+    "cartpole_balance": dict(num_envs=16, updates_per_iteration=8),
+    **{task: dict(num_envs=32, updates_per_iteration=16) for task in ("hopper", "cheetah", "ant", "quadruped")},
+    "humanoid": dict(num_envs=32, updates_per_iteration=16, lr=8e-5, std_decay_steps=2_000_000, feature_dim=100),
+}
+# The CPU preset keeps the method (augmentation, clipped double Q, n-step returns, action repeat,
+# the std schedule) at a size two cores can update several times a second: 48² images, batch
+# 128, 4 updates per round, 256-wide MLPs, a 100k-step replay (690 MB of 48² frames) and a std
+# decay over 100k env steps.
+DRQV2_CPU = dict(num_envs=16, image_size=48, batch_size=128, updates_per_iteration=4, hidden=(256, 256),
+                 replay_size=100_000, std_decay_steps=100_000)
+
+
+def drqv2_preset(task: str, preset: str) -> dict:
+    """DrQ-v2's hyperparameters of ``task`` under ``preset``."""
+    return dict(DRQV2_PAPER[task], **(DRQV2_CPU if preset == "cpu" else {}))
+
+
 def shac_preset(task: str, preset: str, visual_shac: bool = False) -> dict:
     """The SHAC-family hyperparameters of ``task`` under ``preset`` (names and task checked by the caller)."""
     values = dict(SHAC_PAPER[task])

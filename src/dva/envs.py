@@ -32,20 +32,32 @@ Observation = dict[str, jax.Array]  # {"state": (N, obs_dim), "pixels": (N, H, W
 
 
 class PixelObservations:
-    """``num_envs`` copies of ``task`` observed through ``renderer`` with ``frame_stack`` frames.
+    """``num_envs`` copies of ``task`` observed through ``renderer`` with ``frame_stack`` frames,
+    each action held for ``action_repeat`` control steps.
 
     Pure and jittable like the task itself: ``reset(key)`` and ``step(env, action)`` return an
     :class:`EnvState` whose ``pixels`` hold the frame stack (restarted, first frame tiled, where an
     episode restarts). Without a renderer the pixels are an empty (N, 0) array, so state-only and
-    pixel algorithms share one code path.
+    pixel algorithms share one code path. With ``action_repeat`` k > 1 (DrQ-v2, CURL) one step
+    renders once after k control steps and its reward is their sum up to the episode's end;
+    where an episode ends before the k-th, the remaining control steps run in the next episode
+    (their rewards are not counted).
     """
 
-    def __init__(self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3) -> None:
+    def __init__(self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3,
+                 action_repeat: int = 1) -> None:
         if renderer is not None and renderer.num_envs != num_envs:
             raise ValueError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
-        if not isinstance(frame_stack, int) or frame_stack < 1:
-            raise ValueError(f"frame_stack {frame_stack!r} is not allowed; use an int ≥ 1")
-        self.task, self.num_envs, self.renderer, self.frame_stack = task, num_envs, renderer, frame_stack
+        for name, value in (("frame_stack", frame_stack), ("action_repeat", action_repeat)):
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} {value!r} is not allowed; use an int ≥ 1")
+        self.task, self.num_envs, self.renderer = task, num_envs, renderer
+        self.frame_stack, self.action_repeat = frame_stack, action_repeat
+
+    @property
+    def episode_steps(self) -> int:
+        """Steps of this wrapper in one full episode (control steps ÷ action repeat, rounded up)."""
+        return -(-self.task.episode_length // self.action_repeat)
 
     @property
     def has_pixels(self) -> bool:
@@ -63,11 +75,25 @@ class PixelObservations:
         return env.replace(pixels=reset_frame_stack(self.renderer(env.data.qpos), self.frame_stack))
 
     def step(self, env: EnvState, action: jax.Array) -> EnvState:
-        """One control step of the task, then the new frame pushed onto the stack."""
+        """``action_repeat`` control steps of the task, then the new frame pushed onto the stack."""
         env = self.task.step(env, action)
+        if self.action_repeat > 1:
+            env = self._repeat(env, action)
         if self.renderer is None:
             return env
         return env.replace(pixels=push_frame(env.pixels, self.renderer(env.data.qpos), env.done))
+
+    def _repeat(self, env: EnvState, action: jax.Array) -> EnvState:
+        """The remaining control steps of one repeated action: rewards summed and the end flags
+        and final observation kept from the step where the episode ended."""
+        reward, terminated, truncated, final_obs = env.reward, env.terminated, env.truncated, env.final_obs
+        for _ in range(self.action_repeat - 1):
+            env = self.task.step(env, action)
+            running = ~(terminated | truncated)
+            reward = reward + jnp.where(running, env.reward, 0.0)
+            final_obs = jnp.where(running[:, None], env.final_obs, final_obs)
+            terminated, truncated = terminated | (running & env.terminated), truncated | (running & env.truncated)
+        return env.replace(reward=reward, terminated=terminated, truncated=truncated, final_obs=final_obs)
 
     @staticmethod
     def observe(env: EnvState) -> Observation:

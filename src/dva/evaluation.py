@@ -33,7 +33,7 @@ def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, reco
         return (state, total, running * (1.0 - state.done)), shown
 
     ones = jnp.ones(env.num_envs)
-    keys = jax.random.split(policy_key, env.task.episode_length)
+    keys = jax.random.split(policy_key, env.episode_steps)
     (_, total, _), shown = jax.lax.scan(step, (state, 0.0 * ones, ones), keys)
     return (total, *shown) if record else total
 

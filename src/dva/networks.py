@@ -1,5 +1,6 @@
-"""Networks of D.Va / SHAC (spec §1): DrQ-v2 pixel encoder, ELU+LayerNorm MLPs, the Gaussian
-actor with a state-independent log-std, and the state critic; plus running mean/std statistics."""
+"""Networks (spec §1, §3): the DrQ-v2 pixel encoder every pixel algorithm shares; D.Va / SHAC's
+ELU+LayerNorm MLPs, Gaussian actor with a state-independent log-std and state critic; DrQ-v2's
+deterministic actor and twin Q critic; running mean/std statistics."""
 
 from __future__ import annotations
 
@@ -122,6 +123,49 @@ class Critic(nn.Module):
     @nn.compact
     def __call__(self, state: jax.Array) -> jax.Array:
         return MLP(self.hidden, 1)(state)[..., 0]
+
+
+class ReluMLP(nn.Module):
+    """DrQ-v2's MLP: Dense → ReLU hidden layers, then a linear output layer."""
+
+    hidden: Sequence[int]
+    out: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for width in self.hidden:
+            x = nn.relu(nn.Dense(width)(x))
+        return nn.Dense(self.out)(x)
+
+
+def feature_trunk(x: jax.Array, features: int) -> jax.Array:
+    """DrQ-v2's trunk on encoder features: Dense → LayerNorm → Tanh (call inside a compact module)."""
+    return jnp.tanh(nn.LayerNorm()(nn.Dense(features)(x)))
+
+
+class DeterministicActor(nn.Module):
+    """DrQ-v2's actor on encoder features: trunk, ReLU MLP, ``tanh`` mean action in [−1, 1]."""
+
+    action_dim: int
+    feature_dim: int = 50
+    hidden: Sequence[int] = (1024, 1024)
+
+    @nn.compact
+    def __call__(self, features: jax.Array) -> jax.Array:
+        return jnp.tanh(ReluMLP(self.hidden, self.action_dim)(feature_trunk(features, self.feature_dim)))
+
+
+class TwinQ(nn.Module):
+    """Clipped double Q (DrQ-v2, CURL): one trunk on encoder features, two Q heads on
+    ``[trunk(features), action]``. Returns ``(q1, q2)``, each (batch,)."""
+
+    feature_dim: int = 50
+    hidden: Sequence[int] = (1024, 1024)
+
+    @nn.compact
+    def __call__(self, features: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        x = jnp.concatenate([feature_trunk(features, self.feature_dim), action], axis=-1)
+        return ReluMLP(self.hidden, 1)(x)[..., 0], ReluMLP(self.hidden, 1)(x)[..., 0]
 
 
 class RunningStats(struct.PyTreeNode):

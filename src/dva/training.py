@@ -124,8 +124,8 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
 
     ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
     ``iterations``, or ``minutes`` (the whole call, set-up and compilation included; so does the
-    logged wall-clock — a fair clock for comparing methods), or else the config's
-    ``lr_decay_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations and at the
+    logged wall-clock — a fair clock for comparing methods), or else the agent's
+    ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations and at the
     end (never when None). ``resume`` continues the run in ``run_dir`` from its last checkpoint.
     """
     start = time.perf_counter()
@@ -143,7 +143,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
         run_dir.mkdir(parents=True, exist_ok=True)
         spec_path.write_text(json.dumps(spec.__dict__, indent=2))
     agent = build(spec)
-    total = iterations if iterations is not None else (None if minutes is not None else agent.config.lr_decay_iterations)
+    total = iterations if iterations is not None else (None if minutes is not None else agent.default_iterations)
 
     manager = checkpoint_manager(run_dir)
     state = jax.jit(agent.init)(jax.random.PRNGKey(spec.seed))

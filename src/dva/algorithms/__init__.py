@@ -1,7 +1,8 @@
 """The algorithms behind one :class:`~dva.algorithms.base.Agent` protocol, and their registry.
 
 D.Va, SHAC, DPG on state and visual SHAC are one trainer (:mod:`dva.algorithms.shac`) with
-different observations and gradients. :func:`build_agent` puts an algorithm together with its task
+different observations and gradients; DrQ-v2 (:mod:`dva.algorithms.drqv2`) is the off-policy
+pixel baseline. :func:`build_agent` puts an algorithm together with its task
 and pixel wrapper; :func:`make_config` with its preset (:mod:`dva.configs`).
 """
 
@@ -12,8 +13,9 @@ from collections.abc import Callable
 from typing import Any, Literal, get_args
 
 from dva.algorithms.base import Agent
+from dva.algorithms.drqv2 import DrQV2, DrQV2Config
 from dva.algorithms.shac import SHAC, SHACConfig
-from dva.configs import PRESETS, shac_preset
+from dva.configs import PRESETS, drqv2_preset, shac_preset
 from dva.envs import PixelObservations, Renderer
 from dva.tasks import check_task_name, make_task
 
@@ -39,7 +41,7 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
-AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels"]
+AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2"]
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
                      shac_preset, dict(observation="pixels", gradient="decoupled"), _shac_renderer),
@@ -50,12 +52,14 @@ ALGORITHMS: dict[str, Algorithm] = {
     "shac-pixels": Algorithm("visual SHAC: actor on differentiably rendered pixels, full gradient",
                              SHACConfig, SHAC, lambda task, preset: shac_preset(task, preset, visual_shac=True),
                              dict(observation="pixels", gradient="full"), _shac_renderer),
+    "drqv2": Algorithm("DrQ-v2: DDPG from pixels with random-shift augmentation", DrQV2Config, DrQV2,
+                       drqv2_preset, {}, lambda config: "warp"),
 }
 assert set(get_args(AlgoName)) == set(ALGORITHMS)
 
 # run.json files written before fields were renamed still load.
-RENAMED_FIELDS = {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm",
-                  "iterations": "lr_decay_iterations"}
+RENAMED_FIELDS: dict[type, dict[str, str]] = {
+    SHACConfig: {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm", "iterations": "lr_decay_iterations"}}
 
 
 def check_algo(algo: str) -> Algorithm:
@@ -83,9 +87,11 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
 
 def config_from_dict(algo: str, values: dict) -> Any:
     """A config back from ``run.json`` (lists become tuples; old field names are renamed)."""
-    values = {RENAMED_FIELDS.get(key, key): tuple(value) if isinstance(value, list) else value
+    config_type = check_algo(algo).config_type
+    renamed = RENAMED_FIELDS.get(config_type, {})
+    values = {renamed.get(key, key): tuple(value) if isinstance(value, list) else value
               for key, value in values.items()}
-    return check_algo(algo).config_type(**values)
+    return config_type(**values)
 
 
 def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int) -> Renderer | None:
@@ -107,4 +113,6 @@ def build_agent(task_name: str, algo: str, config: Any, physics: str | None = No
     entry = check_algo(algo)
     task = make_task(task_name, physics)
     renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size)
-    return entry.make_agent(PixelObservations(task, config.num_envs, renderer, config.frame_stack), config)
+    action_repeat = getattr(config, "action_repeat", 1)  # configs without one act every control step
+    env = PixelObservations(task, config.num_envs, renderer, config.frame_stack, action_repeat)
+    return entry.make_agent(env, config)

@@ -14,8 +14,8 @@ State = TypeVar("State")  # a pytree holding everything an iteration reads and w
 class Agent(Protocol[State]):
     """An algorithm: a pure, jittable ``iteration`` over a pytree state, plus its policy.
 
-    ``iteration`` returns scalar metrics: ``healthy`` (False stops training: a NaN or exploding
-    update, which the agent must not have applied), ``finished_return_sum`` and
+    ``iteration`` returns scalar metrics: ``healthy`` (False stops training at the last
+    checkpoint: a NaN or exploding update), ``finished_return_sum`` and
     ``finished_episodes`` (training episodes that ended this iteration), and the names in
     ``metric_names``, which the loop logs to CSV and TensorBoard. The state counts its
     iterations in ``state.iteration``.
@@ -26,7 +26,12 @@ class Agent(Protocol[State]):
     metric_names: tuple[str, ...]
 
     @property
-    def env_steps_per_iteration(self) -> int: ...
+    def env_steps_per_iteration(self) -> int:
+        """Control steps of the task per iteration, over all envs (action repeats included)."""
+
+    @property
+    def default_iterations(self) -> int:
+        """The run's length when neither an iteration count nor a time budget is given."""
 
     def init(self, key: jax.Array) -> State:
         """Fresh networks, optimisers, environments (and buffers)."""

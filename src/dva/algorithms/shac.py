@@ -130,6 +130,10 @@ class SHAC:
     def env_steps_per_iteration(self) -> int:
         return self.config.num_envs * self.config.horizon
 
+    @property
+    def default_iterations(self) -> int:
+        return self.config.lr_decay_iterations
+
     # ---- set-up -------------------------------------------------------------------------------
     def init(self, key: jax.Array) -> TrainState:
         """Fresh networks, optimisers and environments."""

@@ -1,0 +1,146 @@
+"""DrQ-v2 and its frame replay: random shifts pixel-exact, n-step targets and frame stacks against
+hand-computed cases, sampling that never reads unwritten slots or crosses an episode, the target
+network's Polyak update, and the agent running through the training loop."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dva.algorithms import make_config
+from dva.algorithms.drqv2 import DrQV2, shift_images
+from dva.envs import PixelObservations
+from dva.rendering import push_frame, reset_frame_stack
+from dva.replay import FrameReplay, Step, stack_at
+from dva.tasks import make_task
+
+
+class StripeRenderer:
+    """A cheap stand-in for the Warp renderer (the env wrapper only needs the Renderer protocol):
+    a grey image whose brightness follows the cart position."""
+
+    differentiable = False
+
+    def __init__(self, num_envs: int, size: int = 16) -> None:
+        self.num_envs, self.size = num_envs, size
+
+    def __call__(self, qpos: jax.Array) -> jax.Array:
+        value = jnp.clip(128.0 + 50.0 * qpos[:, 0], 0, 255).astype(jnp.uint8)
+        return jnp.broadcast_to(value[:, None, None, None], (self.num_envs, self.size, self.size, 3))
+
+
+def test_shift_images_is_pixel_exact():
+    image = jnp.arange(16, dtype=jnp.uint8).reshape(1, 4, 4, 1)
+    shift = lambda dy, dx: np.asarray(shift_images(image, jnp.array([[dy, dx]]), pad=1))[0, ..., 0]
+    np.testing.assert_array_equal(shift(1, 1), np.asarray(image[0, ..., 0]))  # (pad, pad): identity
+    rows, cols = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
+    original = np.arange(16).reshape(4, 4)
+    # Offset (0, 0): the image moves down-right by one, edge pixels repeated into the gap.
+    np.testing.assert_array_equal(shift(0, 0), original[np.maximum(rows - 1, 0), np.maximum(cols - 1, 0)])
+    # Offset (2, 0): up by one, right by one.
+    np.testing.assert_array_equal(shift(2, 0), original[np.minimum(rows + 1, 3), np.maximum(cols - 1, 0)])
+
+
+def steps_from(rewards, terminated=(), truncated=(), first=()) -> Step:
+    """One sampled sequence (L steps) with frame t filled with the value t + 1."""
+    length = len(rewards)
+    flag = lambda where: jnp.array([t in where for t in range(length)])
+    return Step(frame=jnp.broadcast_to(jnp.arange(1, length + 1, dtype=jnp.uint8)[:, None, None, None], (length, 2, 2, 3)),
+                first=flag(first), action=jnp.arange(length, dtype=jnp.float32)[:, None],
+                reward=jnp.asarray(rewards, jnp.float32), terminated=flag(terminated), truncated=flag(truncated))
+
+
+def test_n_step_transition_against_hand_computed_returns():
+    replay = FrameReplay(num_envs=1, capacity=100, batch_size=1, frame_stack=3, n_step=3, gamma=0.5)
+    rewards = [9.0, 9.0, 1.0, 2.0, 4.0, 9.0]  # the window starts at position 2 (frame_stack − 1)
+    running = replay.transition(steps_from(rewards))
+    assert float(running.reward) == 1 + 0.5 * 2 + 0.25 * 4 and float(running.discount) == 0.125
+    assert bool(running.valid) and float(running.action[0]) == 2.0
+    assert int(running.obs[0, 0, -1]) == 3 and int(running.next_obs[0, 0, -1]) == 6  # o_t and o_{t+3}
+    ended = replay.transition(steps_from(rewards, terminated={3}))  # fails after r = 2: no bootstrap
+    assert float(ended.reward) == 1 + 0.5 * 2 and float(ended.discount) == 0.0 and bool(ended.valid)
+    timed_out = replay.transition(steps_from(rewards, truncated={3}))  # o_{t+2} was replaced by a reset
+    assert not bool(timed_out.valid)
+    earlier = replay.transition(steps_from(rewards, terminated={1}, truncated={0}))  # before o_t: irrelevant
+    assert float(earlier.reward) == running.reward and bool(earlier.valid)
+
+
+def test_frame_stacks_rebuilt_from_single_frames_match_the_wrapper():
+    """Push frames through the wrapper's own stacking (with episode restarts), store only the
+    newest frame and the episode-start flag, and rebuild every stack from the stored frames."""
+    frames = jnp.arange(1, 13, dtype=jnp.uint8)[:, None, None, None, None] * jnp.ones((1, 1, 2, 2, 3), jnp.uint8)
+    restarts = {4, 6, 7}  # the observation at these steps starts an episode
+    stacks, stack = [], reset_frame_stack(frames[0], 3)
+    for t in range(12):
+        if t > 0:
+            stack = push_frame(stack, frames[t], jnp.array([t in restarts]))
+        stacks.append(stack[0])
+    first = jnp.array([t == 0 or t in restarts for t in range(12)])
+    for t in range(2, 12):
+        np.testing.assert_array_equal(np.asarray(stack_at(frames[:, 0], first, t, 3)), np.asarray(stacks[t]))
+
+
+def test_replay_samples_only_written_steps_and_never_crosses_an_episode():
+    num_envs, gamma = 2, 0.5
+    replay = FrameReplay(num_envs, capacity=200, batch_size=256, frame_stack=3, n_step=3, gamma=gamma)
+    example = Step(frame=jnp.zeros((2, 2, 3), jnp.uint8), first=jnp.zeros((), bool), action=jnp.zeros(1),
+                   reward=jnp.zeros(()), terminated=jnp.zeros((), bool), truncated=jnp.zeros((), bool))
+    state = replay.init(example)
+    length, end = 9, {(0, 4)}  # env 0 fails at step 4; frame value = 10·env + t + 1 tells a step apart
+    for t in range(length):
+        value = jnp.array([10 * e + t + 1 for e in range(num_envs)], jnp.uint8)
+        state = replay.add(state, Step(
+            frame=jnp.broadcast_to(value[:, None, None, None], (num_envs, 2, 2, 3)),
+            first=jnp.array([t == 0 or (e, t - 1) in end for e in range(num_envs)]),
+            action=jnp.zeros((num_envs, 1)), reward=jnp.full(num_envs, float(t)),
+            terminated=jnp.array([(e, t) in end for e in range(num_envs)]), truncated=jnp.zeros(num_envs, bool)))
+    batch = jax.device_get(replay.sample(state, jax.random.PRNGKey(0)))
+    assert batch.obs.min() > 0 and batch.next_obs.min() > 0  # every frame was written
+    for obs, reward, discount in zip(batch.obs, batch.reward, batch.discount):
+        env, t = divmod(int(obs[0, 0, -1]) - 1, 10)
+        assert 2 <= t <= length - 4  # room for two earlier frames and three later steps
+        window = range(t, t + 3)
+        fails = [i for i in window if (env, i) in end]
+        last = fails[0] if fails else t + 2
+        expected = sum(gamma ** (i - t) * i for i in range(t, last + 1))
+        assert reward == pytest.approx(expected) and discount == (0.0 if fails else gamma**3)
+
+
+@pytest.fixture(scope="module")
+def small_agent():
+    config = make_config("cartpole_balance", "drqv2", "cpu", num_envs=4, image_size=16, batch_size=8,
+                         hidden=(16, 16), feature_dim=8, replay_size=400, seed_steps=32, updates_per_iteration=2)
+    env = PixelObservations(make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack,
+                            config.action_repeat)
+    agent = DrQV2(env, config)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    iteration = jax.jit(agent.iteration)
+    for _ in range(6):  # 6 × 4 envs × 2 repeats = 48 env steps: past the seed phase
+        state, metrics = iteration(state)
+    return agent, state, jax.device_get(metrics)
+
+
+def test_drqv2_learns_after_the_seed_phase_and_moves_the_target_by_tau(small_agent):
+    agent, state, metrics = small_agent
+    assert np.isfinite(metrics["critic_loss"]) and np.isfinite(metrics["actor_loss"]) and metrics["healthy"]
+    assert metrics["exploration_std"] < 1.0
+    batch = agent.replay.sample(state.replay, jax.random.PRNGKey(1))
+    updated, _ = jax.jit(agent.update)(state, batch, jnp.asarray(0.5), jax.random.PRNGKey(2))
+    tau = agent.config.target_tau
+    expected = jax.tree.map(lambda online, old: tau * online + (1 - tau) * old,
+                            updated.params["critic"], state.target_critic)
+    for got, want in zip(jax.tree.leaves(updated.target_critic), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+    moved = [np.abs(a - b).max() for a, b in zip(jax.tree.leaves(updated.params), jax.tree.leaves(state.params))]
+    assert min(moved) > 0  # encoder, actor and critic all learn
+
+
+def test_drqv2_acts_with_the_actors_mean(small_agent):
+    agent, state, _ = small_agent
+    observation = agent.env.observe(state.env)
+    action = agent.act(agent.policy(state), observation)
+    assert action.shape == (4, 1) and np.all(np.abs(np.asarray(action)) <= 1.0)
+    features = agent.encoder.apply(state.params["encoder"], observation["pixels"])
+    np.testing.assert_allclose(action, agent.actor.apply(state.params["actor"], features))
