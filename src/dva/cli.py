@@ -12,6 +12,7 @@ from typing import Annotated, Optional, Union
 import tyro
 
 from dva.algorithms import ALGORITHMS, AlgoName
+from dva.algorithms.curl import CURLConfig
 from dva.algorithms.drqv2 import DrQV2Config
 from dva.algorithms.shac import SHACConfig
 from dva.configs import PresetName
@@ -86,7 +87,8 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = ()) -> type:
 
 SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
 DrQV2Overrides = optional_fields(DrQV2Config)
-CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config}  # TrainCommand field → the config it overrides
+CURLOverrides = optional_fields(CURLConfig)
+CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig}  # TrainCommand field → the config it overrides
 
 
 @dataclasses.dataclass
@@ -96,7 +98,7 @@ class TrainCommand:
 
     task: str = "cartpole_swingup"
     algo: AlgoName = "dva"
-    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2"""
+    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl"""
     preset: PresetName = "cpu"
     """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
     seed: int = 0
@@ -118,6 +120,8 @@ class TrainCommand:
     """Hyperparameters of dva / shac / dpg-state / shac-pixels (unset: the preset's)."""
     drqv2: DrQV2Overrides = dataclasses.field(default_factory=DrQV2Overrides)
     """Hyperparameters of drqv2 (unset: the preset's)."""
+    curl: CURLOverrides = dataclasses.field(default_factory=CURLOverrides)
+    """Hyperparameters of curl (unset: the preset's)."""
 
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""

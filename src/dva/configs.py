@@ -62,6 +62,17 @@ def drqv2_preset(task: str, preset: str) -> dict:
     return dict(DRQV2_PAPER[task], **(DRQV2_CPU if preset == "cpu" else {}))
 
 
+# ---- CURL (spec §3) -------------------------------------------------------------------------------
+# The paper's settings are the same on every task. The CPU preset, like DrQ-v2's: 48² images,
+# 4 updates per round, 256-wide MLPs.
+CURL_CPU = dict(image_size=48, updates_per_iteration=4, hidden=(256, 256))
+
+
+def curl_preset(task: str, preset: str) -> dict:
+    """CURL's hyperparameters under ``preset`` (task-independent)."""
+    return dict(CURL_CPU) if preset == "cpu" else {}
+
+
 def shac_preset(task: str, preset: str, visual_shac: bool = False) -> dict:
     """The SHAC-family hyperparameters of ``task`` under ``preset`` (names and task checked by the caller)."""
     values = dict(SHAC_PAPER[task])

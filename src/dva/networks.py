@@ -1,6 +1,7 @@
 """Networks (spec §1, §3): the DrQ-v2 pixel encoder every pixel algorithm shares; D.Va / SHAC's
 ELU+LayerNorm MLPs, Gaussian actor with a state-independent log-std and state critic; DrQ-v2's
-deterministic actor and twin Q critic; running mean/std statistics."""
+deterministic actor and twin Q critic; CURL's squashed-Gaussian actor and projection; running
+mean/std statistics."""
 
 from __future__ import annotations
 
@@ -166,6 +167,33 @@ class TwinQ(nn.Module):
     def __call__(self, features: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
         x = jnp.concatenate([feature_trunk(features, self.feature_dim), action], axis=-1)
         return ReluMLP(self.hidden, 1)(x)[..., 0], ReluMLP(self.hidden, 1)(x)[..., 0]
+
+
+class SquashedGaussianActor(nn.Module):
+    """SAC's actor on encoder features (CURL): trunk, ReLU MLP, ``(mean, log_std)`` of the pre-tanh
+    action with ``log_std`` squashed into [−10, 2]."""
+
+    action_dim: int
+    feature_dim: int = 50
+    hidden: Sequence[int] = (1024, 1024)
+    log_std_range: tuple[float, float] = (-10.0, 2.0)
+
+    @nn.compact
+    def __call__(self, features: jax.Array) -> tuple[jax.Array, jax.Array]:
+        out = ReluMLP(self.hidden, 2 * self.action_dim)(feature_trunk(features, self.feature_dim))
+        mean, log_std = jnp.split(out, 2, axis=-1)
+        low, high = self.log_std_range
+        return mean, low + 0.5 * (high - low) * (jnp.tanh(log_std) + 1.0)
+
+
+class Projection(nn.Module):
+    """CURL's projection of encoder features for the contrastive loss: Dense → LayerNorm."""
+
+    features: int = 50
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return nn.LayerNorm()(nn.Dense(self.features)(x))
 
 
 class RunningStats(struct.PyTreeNode):

@@ -1,8 +1,9 @@
 """The algorithms behind one :class:`~dva.algorithms.base.Agent` protocol, and their registry.
 
 D.Va, SHAC, DPG on state and visual SHAC are one trainer (:mod:`dva.algorithms.shac`) with
-different observations and gradients; DrQ-v2 (:mod:`dva.algorithms.drqv2`) is the off-policy
-pixel baseline. :func:`build_agent` puts an algorithm together with its task
+different observations and gradients; DrQ-v2 and CURL (:mod:`dva.algorithms.drqv2`,
+:mod:`dva.algorithms.curl`) are the off-policy pixel baselines on a shared collection loop
+(:mod:`dva.algorithms.off_policy`). :func:`build_agent` puts an algorithm together with its task
 and pixel wrapper; :func:`make_config` with its preset (:mod:`dva.configs`).
 """
 
@@ -13,9 +14,10 @@ from collections.abc import Callable
 from typing import Any, Literal, get_args
 
 from dva.algorithms.base import Agent
+from dva.algorithms.curl import CURL, CURLConfig
 from dva.algorithms.drqv2 import DrQV2, DrQV2Config
 from dva.algorithms.shac import SHAC, SHACConfig
-from dva.configs import PRESETS, drqv2_preset, shac_preset
+from dva.configs import PRESETS, curl_preset, drqv2_preset, shac_preset
 from dva.envs import PixelObservations, Renderer
 from dva.tasks import check_task_name, make_task
 
@@ -41,7 +43,7 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
-AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2"]
+AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl"]
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
                      shac_preset, dict(observation="pixels", gradient="decoupled"), _shac_renderer),
@@ -54,6 +56,8 @@ ALGORITHMS: dict[str, Algorithm] = {
                              dict(observation="pixels", gradient="full"), _shac_renderer),
     "drqv2": Algorithm("DrQ-v2: DDPG from pixels with random-shift augmentation", DrQV2Config, DrQV2,
                        drqv2_preset, {}, lambda config: "warp"),
+    "curl": Algorithm("CURL: SAC from pixels with a contrastive auxiliary loss", CURLConfig, CURL,
+                      curl_preset, {}, lambda config: "warp"),
 }
 assert set(get_args(AlgoName)) == set(ALGORITHMS)
 
