@@ -101,3 +101,19 @@ def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
     assert int(state.iteration) == 7 and int(state.replay.current_index) == 7  # 4 steps + 3 after resuming
     frames = np.asarray(state.replay.experience.frame[:, :7])
     assert frames.reshape(2, 7, -1).max(axis=-1).min() > 0  # all seven steps of both envs were kept
+
+
+def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path):
+    teacher = train("cartpole_balance", "shac", preset="cpu", iterations=2, run_dir=tmp_path / "teacher",
+                    eval_every=None, **SMALL)
+    teacher_end = rows(teacher)[-1]
+    student = train("cartpole_balance", "dagger", preset="cpu", iterations=2, run_dir=tmp_path / "student",
+                    eval_every=2, teacher=str(teacher), num_envs=4, horizon=8, image_size=16, batch_size=16,
+                    replay_size=200, updates_per_iteration=1, actor_hidden=(16,), trunk=16)
+    log = rows(student)
+    assert [int(r["env_steps"]) for r in log] == [int(teacher_end["env_steps"]) + 32 * i for i in range(3)]
+    assert float(log[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
+    assert float(log[-1]["wall_time"]) > float(teacher_end["wall_time"]) and log[-1]["bc_loss"] != ""
+    with pytest.raises(ValueError, match="DAgger needs a teacher on the state"):
+        train("cartpole_balance", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
+              num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200)

@@ -13,6 +13,7 @@ import tyro
 
 from dva.algorithms import ALGORITHMS, AlgoName
 from dva.algorithms.curl import CURLConfig
+from dva.algorithms.dagger import DAggerConfig
 from dva.algorithms.drqv2 import DrQV2Config
 from dva.algorithms.shac import SHACConfig
 from dva.configs import PresetName
@@ -88,7 +89,8 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = ()) -> type:
 SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
 DrQV2Overrides = optional_fields(DrQV2Config)
 CURLOverrides = optional_fields(CURLConfig)
-CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig}  # TrainCommand field → the config it overrides
+DAggerOverrides = optional_fields(DAggerConfig)
+CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig, "dagger": DAggerConfig}  # TrainCommand field → the config it overrides
 
 
 @dataclasses.dataclass
@@ -98,7 +100,7 @@ class TrainCommand:
 
     task: str = "cartpole_swingup"
     algo: AlgoName = "dva"
-    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl"""
+    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl | dagger"""
     preset: PresetName = "cpu"
     """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
     seed: int = 0
@@ -122,6 +124,9 @@ class TrainCommand:
     """Hyperparameters of drqv2 (unset: the preset's)."""
     curl: CURLOverrides = dataclasses.field(default_factory=CURLOverrides)
     """Hyperparameters of curl (unset: the preset's)."""
+    dagger: DAggerOverrides = dataclasses.field(default_factory=DAggerOverrides)
+    """Hyperparameters of dagger (unset: the preset's); --dagger.teacher RUN_DIR names a SHAC run
+    on the state to imitate (default: train one first for --dagger.teacher-minutes)."""
 
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""

@@ -73,6 +73,18 @@ def curl_preset(task: str, preset: str) -> dict:
     return dict(CURL_CPU) if preset == "cpu" else {}
 
 
+# ---- state-to-visual DAgger (spec §3) -------------------------------------------------------------
+# The student has D.Va's networks for the task (SHAC_PAPER's trunk and actor); the paper's 64 envs
+# × 32 steps, or the CPU preset's 16 × 16 at 48² with a 20k-observation replay (415 MB).
+DAGGER_CPU = dict(num_envs=16, horizon=16, image_size=48, replay_size=20_000, updates_per_iteration=8)
+
+
+def dagger_preset(task: str, preset: str) -> dict:
+    """DAgger's hyperparameters of ``task`` under ``preset``."""
+    student = {key: SHAC_PAPER[task][key] for key in ("trunk", "actor_hidden")}
+    return dict(student, **(DAGGER_CPU if preset == "cpu" else {}))
+
+
 def shac_preset(task: str, preset: str, visual_shac: bool = False) -> dict:
     """The SHAC-family hyperparameters of ``task`` under ``preset`` (names and task checked by the caller)."""
     values = dict(SHAC_PAPER[task])

@@ -17,7 +17,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from tqdm import tqdm
 
-from dva.algorithms import build_agent, config_from_dict, make_config
+from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
 from dva.algorithms.base import Agent
 from dva.evaluation import evaluate_policy
 from dva.tasks import make_task
@@ -42,6 +42,12 @@ class RunSpec:
     seed: int
     config: dict
     physics: str | None = None  # the task's contact model (None: the task's default)
+
+
+def read_progress(run_dir) -> list[dict]:
+    """The rows of a run's ``progress.csv``."""
+    with (Path(run_dir) / "progress.csv").open() as f:
+        return list(csv.DictReader(f))
 
 
 def build(spec: RunSpec) -> Agent:
@@ -139,6 +145,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
         if spec_path.exists():
             raise ValueError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
         config = make_config(task, algo, preset, **config_overrides)
+        config = check_algo(algo).prepare(config, task, preset, seed, run_dir, physics)
         spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
         run_dir.mkdir(parents=True, exist_ok=True)
         spec_path.write_text(json.dumps(spec.__dict__, indent=2))
@@ -151,7 +158,9 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     if resume and manager.latest_step() is not None:
         state = restore(manager, state)
         log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
-    offset_time = float(log.rows[-1]["wall_time"]) if log.rows else 0.0
+    # Where the curve starts: the end of the last run, or the cost of what the agent builds on
+    # (DAgger's teacher), so that comparisons count it.
+    offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
 
     step_fn = jax.jit(agent.iteration, donate_argnums=0)
     evaluate = jax.jit(functools.partial(evaluate_agent, agent))
@@ -164,7 +173,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     first = int(state.iteration)
     last_train_return = float("nan")
     if not log.rows:  # the untrained policy's return: where the curve starts (no evaluation: nan)
-        log.append({"iteration": 0, "env_steps": 0, "wall_time": 0.0, "train_return": float("nan"),
+        log.append({"iteration": 0, "env_steps": agent.prior_cost[1], "wall_time": offset_time, "train_return": float("nan"),
                     "eval_return": eval_return(state) if eval_every else float("nan")})
     bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
@@ -183,7 +192,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
                                        f"checkpoint is in {manager.directory}", n, metrics)
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
-            row = {"iteration": n, "env_steps": n * agent.env_steps_per_iteration,
+            row = {"iteration": n, "env_steps": agent.prior_cost[1] + n * agent.env_steps_per_iteration,
                    "wall_time": round(offset_time + time.perf_counter() - start, 3),
                    "train_return": last_train_return,
                    "eval_return": eval_return(state) if eval_every and n % eval_every == 0 else "",
@@ -197,6 +206,8 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             if total is None:  # a time budget: tqdm cannot know the ETA, so show what is left
                 postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(max(0.0, minutes * 60 - (time.perf_counter() - start))))
             bar.set_postfix(postfix)
+            if metrics.get("stop", False):  # the agent's own stopping rule (DAgger: BC loss low enough)
+                break
         last = log.rows[-1]
         if eval_every and last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):
             log.set_last("eval_return", eval_return(state))  # end on an evaluation

@@ -15,9 +15,10 @@ from typing import Any, Literal, get_args
 
 from dva.algorithms.base import Agent
 from dva.algorithms.curl import CURL, CURLConfig
+from dva.algorithms.dagger import DAggerConfig, make_dagger, train_teacher_if_missing
 from dva.algorithms.drqv2 import DrQV2, DrQV2Config
 from dva.algorithms.shac import SHAC, SHACConfig
-from dva.configs import PRESETS, curl_preset, drqv2_preset, shac_preset
+from dva.configs import PRESETS, curl_preset, dagger_preset, drqv2_preset, shac_preset
 from dva.envs import PixelObservations, Renderer
 from dva.tasks import check_task_name, make_task
 
@@ -34,6 +35,9 @@ class Algorithm:
     preset: Callable[[str, str], dict]  # (task, preset) → config values
     defining: dict[str, Any]  # config values that make it this algorithm (not overridable)
     renderer: Callable[[Any], RendererKind]  # which renderer its config needs
+    # Before a new run: (config, task, preset, seed, run_dir, physics) → the config to run (DAgger
+    # trains its teacher here when it has none).
+    prepare: Callable[..., Any] = lambda config, *_: config
 
 
 def _shac_renderer(config: SHACConfig) -> RendererKind:
@@ -43,7 +47,7 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
-AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl"]
+AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl", "dagger"]
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
                      shac_preset, dict(observation="pixels", gradient="decoupled"), _shac_renderer),
@@ -58,6 +62,8 @@ ALGORITHMS: dict[str, Algorithm] = {
                        drqv2_preset, {}, lambda config: "warp"),
     "curl": Algorithm("CURL: SAC from pixels with a contrastive auxiliary loss", CURLConfig, CURL,
                       curl_preset, {}, lambda config: "warp"),
+    "dagger": Algorithm("state-to-visual DAgger: a pixel student imitates a SHAC teacher on the state",
+                        DAggerConfig, make_dagger, dagger_preset, {}, lambda config: "warp", train_teacher_if_missing),
 }
 assert set(get_args(AlgoName)) == set(ALGORITHMS)
 

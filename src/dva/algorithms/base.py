@@ -17,13 +17,15 @@ class Agent(Protocol[State]):
     ``iteration`` returns scalar metrics: ``healthy`` (False stops training at the last
     checkpoint: a NaN or exploding update), ``finished_return_sum`` and
     ``finished_episodes`` (training episodes that ended this iteration), and the names in
-    ``metric_names``, which the loop logs to CSV and TensorBoard. The state counts its
-    iterations in ``state.iteration``.
+    ``metric_names``, which the loop logs to CSV and TensorBoard; an optional ``stop`` ends the
+    run normally (the agent's own stopping rule). The state counts its iterations in
+    ``state.iteration``.
     """
 
     env: PixelObservations  # what the agent trains in (its renderer stays alive with it)
     config: Any  # a frozen dataclass, saved in run.json
     metric_names: tuple[str, ...]
+    prior_cost: tuple[float, int]  # (seconds, env steps) spent before it started (DAgger's teacher)
 
     @property
     def env_steps_per_iteration(self) -> int:

@@ -39,6 +39,7 @@ class OffPolicyAgent(abc.ABC):
     ``batch_size``, ``frame_stack``, ``n_step``, ``gamma`` and ``iterations``."""
 
     loss_names: tuple[str, ...]  # the update's metrics (NaN before the first update)
+    prior_cost = (0.0, 0)
 
     def __init__(self, env: PixelObservations, config) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:

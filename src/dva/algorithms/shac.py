@@ -100,6 +100,7 @@ class SHAC:
     observations need ``env`` to render them."""
 
     metric_names = ("actor_loss", "actor_grad_norm", "critic_loss")
+    prior_cost = (0.0, 0)
 
     def __init__(self, env: PixelObservations, config: SHACConfig) -> None:
         if env.num_envs != config.num_envs:

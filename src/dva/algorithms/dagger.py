@@ -1,0 +1,186 @@
+"""State-to-visual DAgger (Mu et al. 2025; spec §3): a pixel student with D.Va's architecture
+imitates a SHAC teacher trained on the state.
+
+One :meth:`DAgger.iteration` (jit it) rolls out ``horizon`` steps over ``num_envs`` envs — each
+env follows the teacher with probability ``teacher_fraction · teacher_decay^iteration`` per step,
+else the student — relabels every visited observation with the teacher's deterministic action,
+adds the (frames, action) pairs to a replay of at most ``replay_size`` and takes
+``updates_per_iteration`` Adam steps on the behaviour-cloning loss ``‖tanh μ_student(o) − a*‖²``
+over sampled batches. Training stops once that loss falls below ``stop_bc_loss``.
+
+The teacher is a finished ``dva train --algo shac`` run (``teacher``); without one, ``dva train
+--algo dagger`` trains it first (``teacher_minutes``) and the student's logged wall-clock and
+env steps continue from the teacher's, so comparisons include its cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flashbax
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from dva.envs import Observation, PixelObservations
+from dva.networks import Actor
+from dva.tasks import EnvState
+
+
+@dataclasses.dataclass(frozen=True)
+class DAggerConfig:
+    """Hyperparameters (spec §3's DAgger row; the student's networks are D.Va's for the task)."""
+
+    teacher: str | None = None  # run directory of a SHAC teacher on state (None: train one first)
+    teacher_minutes: float = 20.0  # its training budget when none is given
+    num_envs: int = 64
+    horizon: int = 32
+    image_size: int = 84
+    frame_stack: int = 3
+    lr: float = 2e-3
+    betas: tuple[float, float] = (0.7, 0.95)
+    batch_size: int = 128
+    updates_per_iteration: int = 16
+    replay_size: int = 100_000  # observations kept
+    teacher_fraction: float = 1.0  # probability of acting with the teacher at iteration 0 …
+    teacher_decay: float = 0.9  # … times this per iteration
+    stop_bc_loss: float = 0.1
+    trunk: int = 64
+    actor_hidden: tuple[int, ...] = (64, 64)
+    iterations: int = 2000  # the run's length when no budget is given
+
+
+class DAggerState(struct.PyTreeNode):
+    """Everything one iteration reads and writes (a pytree: jittable, checkpointable)."""
+
+    student: dict
+    opt_state: optax.OptState
+    env: EnvState
+    replay: object  # flashbax item buffer state: {"pixels", "action"}
+    episode_return: jax.Array
+    key: jax.Array
+    iteration: jax.Array
+
+
+class DAgger:
+    """The DAgger agent (an :class:`~dva.algorithms.base.Agent`); see the module docstring.
+
+    ``teacher`` is the teacher's agent and ``teacher_policy`` its :meth:`policy` parameters.
+    """
+
+    metric_names = ("bc_loss", "teacher_fraction")
+
+    def __init__(self, env: PixelObservations, config: DAggerConfig, teacher, teacher_policy,
+                 teacher_cost: tuple[float, int] = (0.0, 0)) -> None:
+        if not env.has_pixels or env.num_envs != config.num_envs:
+            raise ValueError(f"DAgger needs an env wrapper that renders {config.num_envs} envs")
+        if teacher.task.name != env.task.name:
+            raise ValueError(f"the teacher was trained on {teacher.task.name!r}, the student runs {env.task.name!r}")
+        self.env, self.task, self.config = env, env.task, config
+        self.teacher, self.teacher_policy, self.prior_cost = teacher, teacher_policy, teacher_cost
+        self.student = Actor(self.task.action_dim, config.actor_hidden, pixels=True, trunk=config.trunk)
+        self.optimizer = optax.adam(config.lr, b1=config.betas[0], b2=config.betas[1])
+        self.replay = flashbax.make_item_buffer(max_length=config.replay_size, min_length=config.batch_size,
+                                                sample_batch_size=config.batch_size, add_batches=True)
+
+    @property
+    def env_steps_per_iteration(self) -> int:
+        return self.config.num_envs * self.config.horizon
+
+    @property
+    def default_iterations(self) -> int:
+        return self.config.iterations
+
+    def init(self, key: jax.Array) -> DAggerState:
+        env_key, student_key, key = jax.random.split(key, 3)
+        env = self.env.reset(env_key)
+        student = self.student.init(student_key, env.pixels[:1])
+        example = {"pixels": env.pixels[0], "action": jnp.zeros(self.task.action_dim)}
+        return DAggerState(student=student, opt_state=self.optimizer.init(student), env=env,
+                           replay=self.replay.init(example), episode_return=jnp.zeros(self.config.num_envs),
+                           key=key, iteration=jnp.zeros((), jnp.int32))
+
+    def teacher_action(self, observation: Observation) -> jax.Array:
+        return jax.lax.stop_gradient(self.teacher.act(self.teacher_policy, observation))
+
+    def bc_loss(self, student: dict, pixels: jax.Array, action: jax.Array) -> jax.Array:
+        """Mean over the batch of ``‖tanh μ_student(pixels) − action‖²``."""
+        mean, _ = self.student.apply(student, pixels)
+        return jnp.mean(jnp.sum((jnp.tanh(mean) - action) ** 2, axis=-1))
+
+    def iteration(self, state: DAggerState) -> tuple[DAggerState, dict[str, jax.Array]]:
+        """Roll out the mixture, relabel with the teacher, aggregate, fit the student."""
+        cfg = self.config
+        key, mix_key, update_key = jax.random.split(state.key, 3)
+        fraction = cfg.teacher_fraction * cfg.teacher_decay ** state.iteration.astype(jnp.float32)
+
+        def step(carry, step_key):
+            env, episode_return = carry
+            observation = self.env.observe(env)
+            label = self.teacher_action(observation)
+            use_teacher = jax.random.uniform(step_key, (cfg.num_envs, 1)) < fraction
+            action = jnp.where(use_teacher, label, self.act(state.student, observation))
+            env = self.env.step(env, action)
+            episode_return = episode_return + env.reward
+            finished = jnp.where(env.done, episode_return, 0.0)
+            return (env, jnp.where(env.done, 0.0, episode_return)), (observation["pixels"], label, finished, env.done)
+
+        (env, episode_return), (pixels, labels, finished, done) = jax.lax.scan(
+            step, (state.env, state.episode_return), jax.random.split(mix_key, cfg.horizon))
+        flat = lambda x: x.reshape((-1,) + x.shape[2:])
+        replay = self.replay.add(state.replay, {"pixels": flat(pixels), "action": flat(labels)})
+
+        def update(carry, key):
+            student, opt_state = carry
+            batch = self.replay.sample(replay, key).experience
+            loss, grads = jax.value_and_grad(self.bc_loss)(student, batch["pixels"], batch["action"])
+            updates, opt_state = self.optimizer.update(grads, opt_state, student)
+            return (optax.apply_updates(student, updates), opt_state), loss
+
+        (student, opt_state), losses = jax.lax.scan(update, (state.student, state.opt_state),
+                                                    jax.random.split(update_key, cfg.updates_per_iteration))
+        bc_loss = losses[-1]
+        metrics = {"bc_loss": bc_loss, "teacher_fraction": fraction, "healthy": jnp.isfinite(bc_loss),
+                   "stop": bc_loss < cfg.stop_bc_loss,
+                   "finished_return_sum": finished.sum(), "finished_episodes": done.sum()}
+        return state.replace(student=student, opt_state=opt_state, env=env, replay=replay,
+                             episode_return=episode_return, key=key, iteration=state.iteration + 1), metrics
+
+    # ---- the agent's policy ------------------------------------------------------------------
+    def policy(self, state: DAggerState) -> dict:
+        return state.student
+
+    def act(self, policy: dict, observation: Observation) -> jax.Array:
+        """The student's deterministic action ``tanh(μ)`` from the frames."""
+        mean, _ = self.student.apply(policy, observation["pixels"])
+        return jnp.tanh(mean)
+
+    def abort_reason(self, metrics: dict) -> str:
+        return f"behaviour-cloning loss {float(metrics['bc_loss']):.3g} is NaN or infinite"
+
+
+def make_dagger(env: PixelObservations, config: DAggerConfig) -> DAgger:
+    """The student, with the teacher loaded from ``config.teacher`` (a SHAC run on state)."""
+    from dva.training import load_run, read_progress  # the training module builds agents itself
+
+    if config.teacher is None:
+        raise ValueError("DAgger needs a teacher run directory (config.teacher)")
+    spec, teacher, teacher_state = load_run(config.teacher)
+    if getattr(teacher.config, "observation", None) != "state":  # SHAC or DPG on the state
+        raise ValueError(f"the teacher {config.teacher} is a {spec.algo!r} run; DAgger needs a teacher on the state "
+                         "(--algo shac)")
+    last = read_progress(config.teacher)[-1]
+    return DAgger(env, config, teacher, teacher.policy(teacher_state),
+                  (float(last["wall_time"]), int(last["env_steps"])))
+
+
+def train_teacher_if_missing(config: DAggerConfig, task: str, preset: str, seed: int, run_dir, physics) -> DAggerConfig:
+    """Without a teacher, train SHAC on the state for ``teacher_minutes`` into ``run_dir/teacher``."""
+    from dva.training import train
+
+    if config.teacher is not None:
+        return config
+    teacher_dir = train(task, "shac", preset=preset, seed=seed, minutes=config.teacher_minutes,
+                        run_dir=run_dir / "teacher", physics=physics)
+    return dataclasses.replace(config, teacher=str(teacher_dir))
