@@ -115,7 +115,9 @@ class TrainCommand:
     report: bool = True
     """At the end, write the return plots and a video of the policy into the run directory."""
     eval_every: int = 50
-    checkpoint_every: int = 25
+    checkpoint_every: int | None = None
+    """Checkpoint every this many iterations (default: by time, --checkpoint-minutes)."""
+    checkpoint_minutes: float = 2.0
     physics: str | None = None
     """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
     shac: SHACOverrides = dataclasses.field(default_factory=SHACOverrides)
@@ -148,7 +150,8 @@ class TrainCommand:
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         run_dir = train(self.task, self.algo, preset=self.preset, seed=self.seed, iterations=self.iterations,
                         minutes=self.minutes, run_dir=self.run_dir, resume=self.resume, eval_every=self.eval_every,
-                        checkpoint_every=self.checkpoint_every, physics=self.physics,
+                        checkpoint_every=self.checkpoint_every,
+                        checkpoint_minutes=self.checkpoint_minutes, physics=self.physics,
                         **self.config_overrides())
         print(f"run written to {run_dir}")
         if self.report:

@@ -124,7 +124,8 @@ def csv_fields(agent: Agent) -> list[str]:
 
 def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, iterations: int | None = None,
           minutes: float | None = None, run_dir: Path = Path("runs/latest"), resume: bool = False,
-          eval_every: int | None = 50, checkpoint_every: int = 25, physics: str | None = None,
+          eval_every: int | None = 50, checkpoint_every: int | None = None, checkpoint_minutes: float = 2.0,
+          physics: str | None = None,
           **config_overrides) -> Path:
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
 
@@ -132,7 +133,9 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     ``iterations``, or ``minutes`` (the whole call, set-up and compilation included; so does the
     logged wall-clock — a fair clock for comparing methods), or else the agent's
     ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations and at the
-    end (never when None). ``resume`` continues the run in ``run_dir`` from its last checkpoint.
+    end (never when None). Checkpoints every ``checkpoint_every`` iterations if given, else every
+    ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
+    the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint.
     """
     start = time.perf_counter()
     run_dir = Path(run_dir)
@@ -171,7 +174,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
         return float(np.mean(evaluate(agent.policy(state), key)))
 
     first = int(state.iteration)
-    last_train_return = float("nan")
+    last_train_return, last_save = float("nan"), time.perf_counter()
     if not log.rows:  # the untrained policy's return: where the curve starts (no evaluation: nan)
         log.append({"iteration": 0, "env_steps": agent.prior_cost[1], "wall_time": offset_time, "train_return": float("nan"),
                     "eval_return": eval_return(state) if eval_every else float("nan")})
@@ -199,8 +202,10 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
                    **{name: float(metrics[name]) for name in agent.metric_names},
                    "iteration_time": round(iteration_time, 4)}
             log.append(row)
-            if n % checkpoint_every == 0:
+            if (n % checkpoint_every == 0 if checkpoint_every else
+                    time.perf_counter() - last_save >= 60 * checkpoint_minutes):
                 save(manager, state)
+                last_save = time.perf_counter()
             bar.update(1)
             postfix = dict(steps=row["env_steps"], ret=f"{last_train_return:.1f}", s_it=f"{iteration_time:.2f}")
             if total is None:  # a time budget: tqdm cannot know the ETA, so show what is left
