@@ -5,6 +5,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from dva.algorithms import ALGORITHMS, make_config
+from dva.envs import PixelObservations
+from dva.tasks import make_task
+
 
 class StripeRenderer:
     """A cheap stand-in for the Warp renderer (the env wrapper only needs the Renderer protocol):
@@ -18,3 +22,18 @@ class StripeRenderer:
     def __call__(self, qpos: jax.Array) -> jax.Array:
         value = jnp.clip(128.0 + 50.0 * qpos[:, 0], 0, 255).astype(jnp.uint8)
         return jnp.broadcast_to(value[:, None, None, None], (self.num_envs, self.size, self.size, 3))
+
+
+def small_off_policy_agent(algo: str, iterations: int, **overrides):
+    """A tiny ``algo`` (drqv2 or curl) on cartpole_balance with 4 envs and the stripe renderer,
+    trained for ``iterations``: returns the agent, its state and the last metrics."""
+    config = make_config("cartpole_balance", algo, "cpu", num_envs=4, image_size=16, batch_size=8, hidden=(16, 16),
+                         feature_dim=8, replay_size=400, **overrides)
+    env = PixelObservations(make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack,
+                            config.action_repeat)
+    agent = ALGORITHMS[algo].make_agent(env, config)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    iteration = jax.jit(agent.iteration)
+    for _ in range(iterations):
+        state, metrics = iteration(state)
+    return agent, state, jax.device_get(metrics)

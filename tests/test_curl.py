@@ -12,11 +12,8 @@ import numpy as np
 import optax
 import pytest
 
-from dva.algorithms import make_config
-from dva.algorithms.curl import CURL, info_nce_logits, squashed_gaussian_sample, temperature_loss
-from dva.envs import PixelObservations
-from dva.tasks import make_task
-from fakes import StripeRenderer
+from dva.algorithms.curl import info_nce_logits, squashed_gaussian_sample, temperature_loss
+from fakes import small_off_policy_agent
 
 
 def test_info_nce_logits_and_loss_by_hand():
@@ -50,16 +47,9 @@ def test_squashed_gaussian_density_by_hand():
 
 
 def test_curl_update_trains_every_part_and_moves_the_key_encoder_by_momentum():
-    config = make_config("cartpole_balance", "curl", "cpu", num_envs=4, image_size=16, batch_size=8,
-                         hidden=(16, 16), feature_dim=8, replay_size=400, seed_steps=16, updates_per_iteration=1)
-    env = PixelObservations(make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack,
-                            config.action_repeat)
-    agent = CURL(env, config)
-    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
-    iteration = jax.jit(agent.iteration)
-    for _ in range(5):  # 40 env steps: past the seed phase, and every env holds a full sequence
-        state, metrics = iteration(state)
-    metrics = jax.device_get(metrics)
+    # 5 × 4 envs × 2 repeats = 40 env steps: past the seed phase, a full sequence in every env.
+    agent, state, metrics = small_off_policy_agent("curl", 5, seed_steps=16, updates_per_iteration=1)
+    config = agent.config
     assert metrics["healthy"] and all(np.isfinite(metrics[name]) for name in agent.loss_names)
     learner = state.learner
     batch = agent.replay.sample(state.replay, jax.random.PRNGKey(1))
@@ -73,5 +63,5 @@ def test_curl_update_trains_every_part_and_moves_the_key_encoder_by_momentum():
                                 updated.params[name], learner.target[name])
         for got, want in zip(jax.tree.leaves(updated.target[name]), jax.tree.leaves(expected)):
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
-    action = agent.act(agent.policy(state), env.observe(state.env))
+    action = agent.act(agent.policy(state), agent.env.observe(state.env))
     assert action.shape == (4, 1) and np.all(np.abs(np.asarray(action)) < 1.0)

@@ -9,14 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.algorithms import make_config
-from dva.algorithms.drqv2 import DrQV2
 from dva.augmentation import shift_images
-from dva.envs import PixelObservations
 from dva.rendering import push_frame, reset_frame_stack
 from dva.replay import FrameReplay, Step, stack_at
-from dva.tasks import make_task
-from fakes import StripeRenderer
+from fakes import small_off_policy_agent
 
 
 def test_shift_images_is_pixel_exact():
@@ -98,16 +94,8 @@ def test_replay_samples_only_written_steps_and_never_crosses_an_episode():
 
 @pytest.fixture(scope="module")
 def small_agent():
-    config = make_config("cartpole_balance", "drqv2", "cpu", num_envs=4, image_size=16, batch_size=8,
-                         hidden=(16, 16), feature_dim=8, replay_size=400, seed_steps=32, updates_per_iteration=2)
-    env = PixelObservations(make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack,
-                            config.action_repeat)
-    agent = DrQV2(env, config)
-    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
-    iteration = jax.jit(agent.iteration)
-    for _ in range(6):  # 6 × 4 envs × 2 repeats = 48 env steps: past the seed phase
-        state, metrics = iteration(state)
-    return agent, state, jax.device_get(metrics)
+    # 6 × 4 envs × 2 repeats = 48 env steps: past the seed phase.
+    return small_off_policy_agent("drqv2", 6, seed_steps=32, updates_per_iteration=2)
 
 
 def test_drqv2_learns_after_the_seed_phase_and_moves_the_target_by_tau(small_agent):

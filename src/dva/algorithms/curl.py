@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyState
+from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig, OffPolicyState
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations
 from dva.networks import PixelEncoder, Projection, SquashedGaussianActor, TwinQ
@@ -37,17 +37,11 @@ from dva.replay import NStepBatch
 
 
 @dataclasses.dataclass(frozen=True)
-class CURLConfig:
+class CURLConfig(OffPolicyConfig):
     """Hyperparameters (spec §3's CURL row)."""
 
-    num_envs: int = 16
-    image_size: int = 84
-    frame_stack: int = 3
-    action_repeat: int = 2
-    updates_per_iteration: int = 8
     batch_size: int = 32
-    n_step: int = 1
-    gamma: float = 0.99
+    seed_steps: int = 1000
     lr: float = 1e-3  # actor, critic and contrastive
     betas: tuple[float, float] = (0.9, 0.99)
     critic_tau: float = 0.01
@@ -55,12 +49,6 @@ class CURLConfig:
     init_temperature: float = 0.1
     temperature_lr: float = 1e-4
     temperature_betas: tuple[float, float] = (0.5, 0.99)
-    feature_dim: int = 50
-    hidden: tuple[int, ...] = (1024, 1024)
-    replay_size: int = 100_000
-    seed_steps: int = 1000
-    shift_pad: int = 4
-    iterations: int = 100_000  # the run's length when no budget is given
 
 
 class CURLLearner(struct.PyTreeNode):

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyState
+from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig, OffPolicyState
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations
 from dva.networks import DeterministicActor, PixelEncoder, TwinQ
@@ -29,33 +29,18 @@ from dva.replay import NStepBatch
 
 
 @dataclasses.dataclass(frozen=True)
-class DrQV2Config:
+class DrQV2Config(OffPolicyConfig):
     """Hyperparameters (spec §3's DrQ-v2 row; Cart-pole's envs and updates)."""
 
-    num_envs: int = 16
-    image_size: int = 84
-    frame_stack: int = 3
-    action_repeat: int = 2
-    updates_per_iteration: int = 8  # agent updates per collection round (one step of every env)
     batch_size: int = 256
     n_step: int = 3
-    gamma: float = 0.99
+    replay_size: int = 1_000_000
     lr: float = 1e-4
     target_tau: float = 0.01
     std_start: float = 1.0
     std_end: float = 0.1
     std_decay_steps: int = 500_000  # env (control) steps over which exploration std decays linearly
     std_clip: float = 0.3  # the noise added to the actor's action in the losses is clipped to ±this
-    feature_dim: int = 50
-    hidden: tuple[int, ...] = (1024, 1024)
-    replay_size: int = 1_000_000  # env steps kept, over all envs
-    seed_steps: int = 4000  # env steps of uniform random actions before the first update
-    shift_pad: int = 4  # random shifts of up to ± this many pixels
-    iterations: int = 100_000  # the run's length when no budget is given
-
-    def __post_init__(self) -> None:
-        if self.batch_size < 1 or self.n_step < 1 or self.updates_per_iteration < 1:
-            raise ValueError("batch_size, n_step and updates_per_iteration must be ≥ 1")
 
 
 class DrQV2Learner(struct.PyTreeNode):

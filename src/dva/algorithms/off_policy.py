@@ -11,6 +11,7 @@ action (:meth:`explore`), one update (:meth:`update`) and its evaluation policy.
 from __future__ import annotations
 
 import abc
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,31 @@ from flax import struct
 from dva.envs import PixelObservations
 from dva.replay import FrameReplay, NStepBatch, Step
 from dva.tasks import EnvState
+
+
+@dataclasses.dataclass(frozen=True)
+class OffPolicyConfig:
+    """What the shared loop needs; each algorithm's config adds its own fields and defaults."""
+
+    num_envs: int = 16
+    image_size: int = 84
+    frame_stack: int = 3
+    action_repeat: int = 2
+    updates_per_iteration: int = 8  # agent updates per collection round (one step of every env)
+    batch_size: int = 256
+    n_step: int = 1
+    gamma: float = 0.99
+    feature_dim: int = 50
+    hidden: tuple[int, ...] = (1024, 1024)
+    replay_size: int = 100_000  # env steps kept, over all envs
+    seed_steps: int = 4000  # env steps of uniform random actions before the first update
+    shift_pad: int = 4  # random shifts of up to ± this many pixels
+    iterations: int = 100_000  # the run's length when no budget is given
+
+    def __post_init__(self) -> None:
+        for name in ("num_envs", "action_repeat", "updates_per_iteration", "batch_size", "n_step"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
 
 
 class OffPolicyState(struct.PyTreeNode):
@@ -34,14 +60,12 @@ class OffPolicyState(struct.PyTreeNode):
 
 
 class OffPolicyAgent(abc.ABC):
-    """The shared collection and update loop; see the module docstring. ``config`` needs
-    ``num_envs``, ``action_repeat``, ``updates_per_iteration``, ``seed_steps``, ``replay_size``,
-    ``batch_size``, ``frame_stack``, ``n_step``, ``gamma`` and ``iterations``."""
+    """The shared collection and update loop; see the module docstring."""
 
     loss_names: tuple[str, ...]  # the update's metrics (NaN before the first update)
     prior_cost = (0.0, 0)
 
-    def __init__(self, env: PixelObservations, config) -> None:
+    def __init__(self, env: PixelObservations, config: OffPolicyConfig) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:
             raise ValueError(f"{type(self).__name__} needs an env wrapper that renders {config.num_envs} envs")
         self.env, self.task, self.config = env, env.task, config
