@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from tqdm import tqdm
@@ -66,7 +67,7 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
     manager = checkpoint_manager(run_dir)
     if manager.latest_step() is None:
         raise ValueError(f"{run_dir} has no checkpoint yet")
-    state = restore(manager, jax.jit(agent.init)(jax.random.PRNGKey(spec.seed)))
+    state = restore(manager, jax.eval_shape(agent.init, jax.random.PRNGKey(spec.seed)))
     return spec, agent, state
 
 
@@ -105,14 +106,17 @@ def save(manager: ocp.CheckpointManager, state) -> None:
 
 
 def restore(manager: ocp.CheckpointManager, like):
-    """The latest checkpoint, shaped like ``like``; a clear error when it cannot be read."""
+    """The latest checkpoint, shaped like ``like`` (arrays or ``jax.ShapeDtypeStruct``s, e.g. from
+    ``jax.eval_shape(agent.init, key)``: no need to run the initialisation); a clear error when it
+    cannot be read."""
     step = manager.latest_step()
     try:
         saved = manager.restore(step, args=ocp.args.StandardRestore(_saved_leaves(like)))
     except Exception as error:  # orbax raises many types for damaged files
         raise ValueError(f"checkpoint {manager.directory}/{step} is corrupt or incompatible: {error}") from None
     paths_and_leaves, treedef = jax.tree_util.tree_flatten_with_path(like)
-    leaves = [saved.get(jax.tree_util.keystr(path), leaf) for path, leaf in paths_and_leaves]
+    leaves = [saved.get(jax.tree_util.keystr(path), jnp.zeros(leaf.shape, leaf.dtype))  # zero-size leaves
+              for path, leaf in paths_and_leaves]
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
@@ -156,11 +160,12 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     total = iterations if iterations is not None else (None if minutes is not None else agent.default_iterations)
 
     manager = checkpoint_manager(run_dir)
-    state = jax.jit(agent.init)(jax.random.PRNGKey(spec.seed))
     log = ProgressLog(run_dir, csv_fields(agent))
     if resume and manager.latest_step() is not None:
-        state = restore(manager, state)
+        state = restore(manager, jax.eval_shape(agent.init, jax.random.PRNGKey(spec.seed)))
         log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
+    else:
+        state = jax.jit(agent.init)(jax.random.PRNGKey(spec.seed))
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
     # (DAgger's teacher), so that comparisons count it.
     offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
