@@ -35,7 +35,7 @@ def test_unknown_task_is_one_line_error(capsys):
         main(["render", "--task", "walker"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err == ("dva: error: unknown task 'walker'; choose one of: cartpole_swingup, hopper, cheetah, ant, humanoid, "
+    assert err == ("dva: error: unknown task 'walker'; choose one of: cartpole_swingup, cartpole_balance, hopper, cheetah, ant, humanoid, "
                    "quadruped")
 
 
