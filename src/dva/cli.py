@@ -187,7 +187,8 @@ class EvalCommand:
               f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "
               f"random actions: {np.mean(random):.1f} ± {np.std(random):.1f}")
         if self.video is not None:
-            policy_video(self.video, task, qpos, camera, self.video_envs, self.video_size)
+            policy_video(self.video, task, qpos, camera, self.video_envs, self.video_size,
+                         action_repeat=spec.config.get("action_repeat", 1))
             print(f"wrote {self.video}")
 
 

@@ -84,11 +84,12 @@ def side_by_side_video(camera: np.ndarray | None, views: np.ndarray) -> np.ndarr
 
 
 def policy_video(path: Path, task: Task, qpos: np.ndarray, camera: np.ndarray, num_envs: int = 4,
-                 size: int = 256) -> None:
-    """An mp4 of a recorded rollout (``qpos`` (T, N, nq)) of the first ``num_envs`` envs: the
-    actor's camera frames (T, N, h, w, 3; may be empty) next to a ``size``² view, in real time."""
+                 size: int = 256, action_repeat: int = 1) -> None:
+    """An mp4 of a recorded rollout (``qpos`` (T, N, nq), one entry per ``action_repeat`` control
+    steps) of the first ``num_envs`` envs: the actor's camera frames (T, N, h, w, 3; may be
+    empty) next to a ``size``² view, in real time."""
     num_envs = min(num_envs, qpos.shape[1])
     renderer = PixelRenderer(task, num_envs, size, samples_per_pixel=2)
     views = render_trajectory(renderer, qpos[:, :num_envs], tile=False)
     shown = np.clip(camera[:, :num_envs], 0, 255).astype(np.uint8) if camera.size else None  # float if soft-rendered
-    write_video(path, side_by_side_video(shown, views), fps=round(1.0 / CONTROL_DT))
+    write_video(path, side_by_side_video(shown, views), fps=round(1.0 / (CONTROL_DT * action_repeat)))
