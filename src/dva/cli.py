@@ -75,11 +75,17 @@ class RenderCommand:
         print(f"wrote {grid_path} and {video_path}")
 
 
-def optional_fields(config_type: type, exclude: tuple[str, ...] = ()) -> type:
+def optional_fields(config_type: type, exclude: tuple[str, ...] = (), aliases: dict[str, str] | None = None) -> type:
     """A dataclass with every field of ``config_type`` (but ``exclude``) as an optional flag whose
-    default, None, keeps the preset's value: ``dva train --shac.horizon 16``."""
-    hints = typing.get_type_hints(config_type)
-    fields = [(field.name, Optional[hints[field.name]], dataclasses.field(default=None))
+    default, None, keeps the preset's value: ``dva train --shac.horizon 16``; ``aliases`` gives
+    some a short flag too (e.g. ``--teacher`` for ``--dagger.teacher``)."""
+    hints, aliases = typing.get_type_hints(config_type), aliases or {}
+
+    def flag_type(name: str):
+        optional = Optional[hints[name]]
+        return Annotated[optional, tyro.conf.arg(aliases=(aliases[name],))] if name in aliases else optional
+
+    fields = [(field.name, flag_type(field.name), dataclasses.field(default=None))
               for field in dataclasses.fields(config_type) if field.name not in exclude]
     overrides = dataclasses.make_dataclass(f"{config_type.__name__}Overrides", fields, frozen=True)
     overrides.__doc__ = f"{config_type.__doc__.strip()} Unset: the preset's value."
@@ -89,7 +95,7 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = ()) -> type:
 SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
 DrQV2Overrides = optional_fields(DrQV2Config)
 CURLOverrides = optional_fields(CURLConfig)
-DAggerOverrides = optional_fields(DAggerConfig)
+DAggerOverrides = optional_fields(DAggerConfig, aliases={"teacher": "--teacher"})
 CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig, "dagger": DAggerConfig}  # TrainCommand field → the config it overrides
 
 
@@ -127,8 +133,8 @@ class TrainCommand:
     curl: CURLOverrides = dataclasses.field(default_factory=CURLOverrides)
     """Hyperparameters of curl (unset: the preset's)."""
     dagger: DAggerOverrides = dataclasses.field(default_factory=DAggerOverrides)
-    """Hyperparameters of dagger (unset: the preset's); --dagger.teacher RUN_DIR names a SHAC run
-    on the state to imitate (default: train one first for --dagger.teacher-minutes)."""
+    """Hyperparameters of dagger (unset: the preset's); --teacher (--dagger.teacher) RUN_DIR names a
+    SHAC run on the state to imitate (default: train one first for --dagger.teacher-minutes)."""
 
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""
