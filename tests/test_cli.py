@@ -131,3 +131,17 @@ def test_analyze_gradients_writes_table_and_figure(tmp_path, capsys):
         assert -1.0 <= cosine <= 1.0 and apg_norm > 0 and dpg_norm > 0
         assert cosine < 1.0 - 1e-6  # different gradients: the observation path contributes
     assert iio.imread(out_dir / "apg_vs_dpg.png").ndim == 3
+
+
+def test_train_flags_reach_every_config_field_of_the_chosen_algorithm_only():
+    import tyro
+
+    from dva.cli import TrainCommand
+
+    command = tyro.cli(TrainCommand, args=["--algo", "dagger", "--teacher", "runs/teacher", "--dagger.batch-size", "64"])
+    assert command.config_overrides() == {"teacher": "runs/teacher", "batch_size": 64}
+    command = tyro.cli(TrainCommand, args=["--algo", "drqv2", "--drqv2.hidden", "32", "32", "--drqv2.n-step", "5"])
+    assert command.config_overrides() == {"hidden": (32, 32), "n_step": 5}
+    command = tyro.cli(TrainCommand, args=["--algo", "curl", "--shac.horizon", "8"])
+    with pytest.raises(ValueError, match=r"--shac.\* flags \(horizon\) do not apply to --algo curl"):
+        command.config_overrides()
