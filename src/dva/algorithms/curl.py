@@ -140,16 +140,9 @@ class CURL(OffPolicyAgent):
                                                   next_action))
         soft_target = jax.lax.stop_gradient(batch.reward + batch.discount * (target_q - alpha * next_log_prob))
 
-        def critic_loss(trained):
-            features = self.features(trained["encoder"], obs)
-            q1, q2 = self.critic.apply(trained["critic"], features, batch.action)
-            return jnp.sum(weight * ((q1 - soft_target) ** 2 + (q2 - soft_target) ** 2)), (features, q1)
-
-        trained = {"encoder": params["encoder"], "critic": params["critic"]}
-        (c_loss, (features, q1)), grads = jax.value_and_grad(critic_loss, has_aux=True)(trained)
-        trained, opt["critic"] = self.step(self.optimizer, grads, opt["critic"], trained)
+        trained, opt["critic"], c_loss, features, q1 = self.fit_critic(
+            params, opt["critic"], obs, batch.action, soft_target, weight)
         params.update(trained)
-        features = jax.lax.stop_gradient(features)
 
         def actor_loss(actor):
             mean, log_std = self.actor.apply(actor, features)

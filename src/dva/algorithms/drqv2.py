@@ -112,17 +112,8 @@ class DrQV2(OffPolicyAgent):
         target_q = jnp.minimum(*self.critic.apply(learner.target_critic, next_features, next_action))
         target = jax.lax.stop_gradient(batch.reward + batch.discount * target_q)
 
-        def critic_loss(trained):
-            features = self.features(trained["encoder"], obs)
-            q1, q2 = self.critic.apply(trained["critic"], features, batch.action)
-            return jnp.sum(weight * ((q1 - target) ** 2 + (q2 - target) ** 2)), (features, q1)
-
-        trained = {"encoder": params["encoder"], "critic": params["critic"]}
-        (c_loss, (features, q1)), grads = jax.value_and_grad(critic_loss, has_aux=True)(trained)
-        updates, critic_opt_state = self.optimizer.update(grads, learner.critic_opt_state, trained)
-        trained = optax.apply_updates(trained, updates)
-
-        features = jax.lax.stop_gradient(features)
+        trained, critic_opt_state, c_loss, features, q1 = self.fit_critic(
+            params, learner.critic_opt_state, obs, batch.action, target, weight)
 
         def actor_loss(actor):
             action = clipped_noise_action(self.actor.apply(actor, features), std, cfg.std_clip, actor_key)

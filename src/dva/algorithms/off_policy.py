@@ -14,6 +14,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import optax
 from flax import struct
 
 from dva.envs import PixelObservations
@@ -95,6 +96,23 @@ class OffPolicyAgent(abc.ABC):
     @abc.abstractmethod
     def update(self, learner, batch: NStepBatch, env_steps: jax.Array, key: jax.Array):
         """One update on ``batch``: ``(learner, {name: scalar for name in loss_names})``."""
+
+    def fit_critic(self, params: dict, opt_state, obs: jax.Array, action: jax.Array, target: jax.Array,
+                   weight: jax.Array):
+        """One clipped double-Q regression step of the encoder and critic towards ``target``
+        (both heads, per-sample ``weight``), with the subclass's ``features``, ``critic`` and
+        ``optimizer``. Returns the new ``{"encoder", "critic"}``, the optimiser state, the loss,
+        the (detached) features of ``obs`` and Q₁."""
+
+        def loss(trained):
+            features = self.features(trained["encoder"], obs)
+            q1, q2 = self.critic.apply(trained["critic"], features, action)
+            return jnp.sum(weight * ((q1 - target) ** 2 + (q2 - target) ** 2)), (features, q1)
+
+        trained = {"encoder": params["encoder"], "critic": params["critic"]}
+        (value, (features, q1)), grads = jax.value_and_grad(loss, has_aux=True)(trained)
+        updates, opt_state = self.optimizer.update(grads, opt_state, trained)
+        return optax.apply_updates(trained, updates), opt_state, value, jax.lax.stop_gradient(features), q1
 
     # ---- the shared loop ----------------------------------------------------------------------
     @property
