@@ -29,10 +29,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig, OffPolicyState
+from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations
-from dva.networks import PixelEncoder, Projection, SquashedGaussianActor, TwinQ
+from dva.networks import Projection, SquashedGaussianActor, TwinQ
 from dva.replay import NStepBatch
 
 
@@ -85,7 +85,6 @@ class CURL(OffPolicyAgent):
 
     def __init__(self, env: PixelObservations, config: CURLConfig) -> None:
         super().__init__(env, config)
-        self.encoder = PixelEncoder()
         self.actor = SquashedGaussianActor(self.task.action_dim, config.feature_dim, config.hidden)
         self.critic = TwinQ(config.feature_dim, config.hidden)
         self.projection = Projection(config.feature_dim)
@@ -110,9 +109,6 @@ class CURL(OffPolicyAgent):
                         "actor": self.optimizer.init(params["actor"]),
                         "contrastive": self.optimizer.init({k: params[k] for k in ("encoder", "projection", "bilinear")}),
                         "alpha": self.alpha_optimizer.init(params["log_alpha"])})
-
-    def features(self, encoder: dict, pixels: jax.Array) -> jax.Array:
-        return self.encoder.apply(encoder, pixels)
 
     def explore(self, learner: CURLLearner, pixels: jax.Array, env_steps: jax.Array, key: jax.Array):
         """A sample of the policy (reported: the temperature α)."""
@@ -176,9 +172,6 @@ class CURL(OffPolicyAgent):
         return CURLLearner(params=params, target=target, opt_states=opt), metrics
 
     # ---- the agent's policy ------------------------------------------------------------------
-    def policy(self, state: OffPolicyState) -> dict:
-        return {"encoder": state.learner.params["encoder"], "actor": state.learner.params["actor"]}
-
     def act(self, policy: dict, observation: Observation) -> jax.Array:
         """``tanh`` of the policy's mean: no sampling."""
         mean, _ = self.actor.apply(policy["actor"], self.features(policy["encoder"], observation["pixels"]))

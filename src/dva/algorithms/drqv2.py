@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig, OffPolicyState
+from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations
-from dva.networks import DeterministicActor, PixelEncoder, TwinQ
+from dva.networks import DeterministicActor, TwinQ
 from dva.replay import NStepBatch
 
 
@@ -66,7 +66,6 @@ class DrQV2(OffPolicyAgent):
 
     def __init__(self, env: PixelObservations, config: DrQV2Config) -> None:
         super().__init__(env, config)
-        self.encoder = PixelEncoder()
         self.actor = DeterministicActor(self.task.action_dim, config.feature_dim, config.hidden)
         self.critic = TwinQ(config.feature_dim, config.hidden)
         self.optimizer = optax.adam(config.lr)
@@ -86,9 +85,6 @@ class DrQV2(OffPolicyAgent):
         cfg = self.config
         fraction = jnp.clip(env_steps / cfg.std_decay_steps, 0.0, 1.0)
         return cfg.std_start + fraction * (cfg.std_end - cfg.std_start)
-
-    def features(self, encoder: dict, pixels: jax.Array) -> jax.Array:
-        return self.encoder.apply(encoder, pixels)
 
     def explore(self, learner: DrQV2Learner, pixels: jax.Array, env_steps: jax.Array, key: jax.Array):
         """The actor's action plus Gaussian noise of the scheduled std (reported as ``exploration``)."""
@@ -129,9 +125,6 @@ class DrQV2(OffPolicyAgent):
         return learner, {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q1)}
 
     # ---- the agent's policy ------------------------------------------------------------------
-    def policy(self, state: OffPolicyState) -> dict:
-        return {"encoder": state.learner.params["encoder"], "actor": state.learner.params["actor"]}
-
     def act(self, policy: dict, observation: Observation) -> jax.Array:
         """The actor's mean action, no exploration noise."""
         return self.actor.apply(policy["actor"], self.features(policy["encoder"], observation["pixels"]))

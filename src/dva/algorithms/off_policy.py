@@ -18,6 +18,7 @@ import optax
 from flax import struct
 
 from dva.envs import PixelObservations
+from dva.networks import PixelEncoder
 from dva.replay import FrameReplay, NStepBatch, Step
 from dva.tasks import EnvState
 
@@ -68,6 +69,7 @@ class OffPolicyAgent(abc.ABC):
         if not env.has_pixels or env.num_envs != config.num_envs:
             raise ValueError(f"{type(self).__name__} needs an env wrapper that renders {config.num_envs} envs")
         self.env, self.task, self.config = env, env.task, config
+        self.encoder = PixelEncoder()  # every algorithm's params hold its weights under "encoder"
         self.replay = FrameReplay(config.num_envs, config.replay_size, config.batch_size, config.frame_stack,
                                   config.n_step, config.gamma)
 
@@ -96,6 +98,13 @@ class OffPolicyAgent(abc.ABC):
     @abc.abstractmethod
     def update(self, learner, batch: NStepBatch, env_steps: jax.Array, key: jax.Array):
         """One update on ``batch``: ``(learner, {name: scalar for name in loss_names})``."""
+
+    def features(self, encoder: dict, pixels: jax.Array) -> jax.Array:
+        return self.encoder.apply(encoder, pixels)
+
+    def policy(self, state: OffPolicyState) -> dict:
+        """The encoder and actor (what ``act`` needs)."""
+        return {"encoder": state.learner.params["encoder"], "actor": state.learner.params["actor"]}
 
     def fit_critic(self, params: dict, opt_state, obs: jax.Array, action: jax.Array, target: jax.Array,
                    weight: jax.Array):
