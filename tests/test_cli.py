@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+
 import imageio.v3 as iio
 import numpy as np
 import pytest
@@ -88,6 +90,36 @@ def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
         plot_runs([tmp_path], tmp_path, "loss")
     with pytest.raises(ValueError, match="has no progress.csv"):
         plot_runs([tmp_path], tmp_path)
+
+
+def test_plot_summary_reports_final_best_and_time_to_threshold(tmp_path):
+    import json
+
+    from dva.analysis.plots import write_summary
+
+    def fake_run(name, algo, seed, rows):
+        run_dir = tmp_path / name
+        run_dir.mkdir()
+        (run_dir / "run.json").write_text(json.dumps({"algo": algo, "task": "cartpole_balance", "preset": "cpu",
+                                                      "seed": seed, "config": {}}))
+        lines = ["env_steps,wall_time,eval_return,train_return"]
+        lines += [f"{steps},{seconds},{value},nan" for steps, seconds, value in rows]
+        (run_dir / "progress.csv").write_text("\n".join(lines) + "\n")
+        return run_dir
+
+    runs = [fake_run("a0", "dva", 0, [(0, 0, 100), (1000, 60, 2500), (2000, 120, 2000)]),
+            fake_run("a1", "dva", 1, [(0, 0, 100), (1000, 60, 900), (3000, 240, 2200)]),
+            fake_run("b0", "curl", 0, [(0, 0, 50), (500, 600, 300)])]
+    path, markdown = write_summary(runs, tmp_path / "out", threshold=2092.0)
+    rows = {row["setting"]: row for row in csv.DictReader(path.open())}
+    dva, curl = rows["dva on cartpole_balance (cpu preset)"], rows["curl on cartpole_balance (cpu preset)"]
+    assert float(dva["final_mean"]) == 2100.0 and float(dva["final_std"]) == 100.0
+    assert float(dva["best_mean"]) == 2350.0 and dva["reached"] == "2"
+    assert float(dva["minutes_to_threshold"]) == 2.5  # median of 1 and 4 minutes
+    assert float(dva["env_steps_to_threshold"]) == 2000.0
+    assert curl["reached"] == "0" and curl["minutes_to_threshold"] == "nan"
+    assert "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 300 | 10.0 | 500 | 0 / 1 | nan | nan |" in markdown
+    assert (tmp_path / "out" / "summary.md").read_text() == markdown
 
 
 def test_diverged_training_exits_with_a_message(tmp_path, monkeypatch, capsys):

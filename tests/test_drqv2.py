@@ -121,3 +121,13 @@ def test_drqv2_acts_with_the_actors_mean(small_agent):
     assert action.shape == (4, 1) and np.all(np.abs(np.asarray(action)) <= 1.0)
     params = state.learner.params
     np.testing.assert_allclose(action, agent.actor.apply(params["actor"], agent.encoder.apply(params["encoder"], observation["pixels"])))
+
+
+def test_replay_stores_rewards_times_reward_scale():
+    agent, state, _ = small_off_policy_agent("drqv2", 0, seed_steps=8, reward_scale=0.5)
+    action = jnp.full((4, 1), 0.3)
+    after, finished = jax.jit(agent.collect)(state, action)
+    stored = after.replay.experience.reward[:, after.replay.current_index - 1]
+    np.testing.assert_allclose(stored, 0.5 * np.asarray(after.env.reward), rtol=1e-6)
+    # the logged episode returns stay in the task's units
+    np.testing.assert_allclose(after.episode_return + finished, state.episode_return + after.env.reward, rtol=1e-6)

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import shutil
+import time
 
 import numpy as np
 import pytest
 
-from dva.algorithms import config_from_dict, make_config
+from dva.algorithms import ALGORITHMS, config_from_dict, make_config
 from dva.training import TrainingDiverged, checkpoint_manager, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
@@ -104,7 +106,7 @@ def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
     assert frames.reshape(2, 10, -1).max(axis=-1).min() > 0  # every step of both envs was kept
 
 
-def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path):
+def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
     teacher = train("cartpole_balance", "shac", preset="cpu", iterations=2, run_dir=tmp_path / "teacher",
                     eval_every=None, **SMALL)
     teacher_end = rows(teacher)[-1]
@@ -115,6 +117,17 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path):
     assert [int(r["env_steps"]) for r in log] == [int(teacher_end["env_steps"]) + 32 * i for i in range(3)]
     assert float(log[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
     assert float(log[-1]["wall_time"]) > float(teacher_end["wall_time"]) and log[-1]["bc_loss"] != ""
+    # A teacher trained within the same call (here a stand-in that takes 2 s) is counted once: the
+    # student's clock starts at the teacher's logged end, not 2 s later.
+    def train_teacher(config, *args):
+        time.sleep(2.0)
+        return dataclasses.replace(config, teacher=str(teacher))
+
+    monkeypatch.setitem(ALGORITHMS, "dagger", dataclasses.replace(ALGORITHMS["dagger"], prepare=train_teacher))
+    in_call = train("cartpole_balance", "dagger", preset="cpu", iterations=0, run_dir=tmp_path / "in_call",
+                    eval_every=None, num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200,
+                    actor_hidden=(16,), trunk=16)
+    assert float(rows(in_call)[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
     with pytest.raises(ValueError, match="DAgger needs a teacher on the state"):
         train("cartpole_balance", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
               num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200)

@@ -200,18 +200,23 @@ class EvalCommand:
 
 @dataclasses.dataclass
 class PlotCommand:
-    """Plot return vs wall-clock and vs env steps; runs of one task and algo are averaged (mean ± std)."""
+    """Plot return vs wall-clock and vs env steps (runs of one task and algo averaged: mean ± std) and
+    write a table of each setting's final and best return and, with ``--threshold``, time to reach it."""
 
     run_dirs: tyro.conf.Positional[list[Path]]
     out: Path = Path("plots")
     metric: str = "eval_return"
     """eval_return (deterministic, full episodes) | train_return (episodes finished in training)"""
+    threshold: float | None = None
+    """Also report, per setting, when its seeds first reached this return (e.g. 2× random)."""
 
     def run(self) -> None:
-        from dva.analysis.plots import plot_runs
+        from dva.analysis.plots import plot_runs, write_summary
 
         for path in plot_runs(self.run_dirs, self.out, self.metric):
             print(f"wrote {path}")
+        path, markdown = write_summary(self.run_dirs, self.out, self.metric, self.threshold)
+        print(markdown + f"wrote {path} and summary.md")
 
 
 @dataclasses.dataclass

@@ -134,8 +134,9 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
 
     ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
-    ``iterations``, or ``minutes`` (the whole call, set-up and compilation included; so does the
-    logged wall-clock — a fair clock for comparing methods), or else the agent's
+    ``iterations``, or ``minutes`` (the whole call, set-up and compilation included, and what the
+    agent builds on — DAgger's teacher —; so does the logged wall-clock, a fair clock for comparing
+    methods; on ``resume``, minutes more), or else the agent's
     ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations and at the
     end (never when None). Checkpoints every ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
@@ -152,7 +153,10 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
         if spec_path.exists():
             raise ValueError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
         config = make_config(task, algo, preset, **config_overrides)
+        preparing = time.perf_counter()
         config = check_algo(algo).prepare(config, task, preset, seed, run_dir, physics)
+        # What prepare trained (DAgger's teacher) is on the clock through agent.prior_cost: not twice.
+        start += time.perf_counter() - preparing
         spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
         run_dir.mkdir(parents=True, exist_ok=True)
         spec_path.write_text(json.dumps(spec.__dict__, indent=2))
@@ -169,6 +173,8 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
     # (DAgger's teacher), so that comparisons count it.
     offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
+    # A fresh run's budget includes that prior cost; a resumed run's ``minutes`` are minutes more.
+    spent_before = 0.0 if log.rows else agent.prior_cost[0]
 
     step_fn = jax.jit(agent.iteration, donate_argnums=0)
     evaluate = jax.jit(functools.partial(evaluate_agent, agent))
@@ -186,7 +192,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
         while True:
-            elapsed_min = (time.perf_counter() - start) / 60
+            elapsed_min = (spent_before + time.perf_counter() - start) / 60
             done = int(state.iteration) - first
             if (total is not None and done >= total) or (minutes is not None and elapsed_min >= minutes):
                 break
@@ -214,7 +220,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             bar.update(1)
             postfix = dict(steps=row["env_steps"], ret=f"{last_train_return:.1f}", s_it=f"{iteration_time:.2f}")
             if total is None:  # a time budget: tqdm cannot know the ETA, so show what is left
-                postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(max(0.0, minutes * 60 - (time.perf_counter() - start))))
+                postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(max(0.0, minutes * 60 - elapsed_min * 60)))
             bar.set_postfix(postfix)
             if metrics.get("stop", False):  # the agent's own stopping rule (DAgger: BC loss low enough)
                 break

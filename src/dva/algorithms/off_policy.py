@@ -35,6 +35,7 @@ class OffPolicyConfig:
     batch_size: int = 256
     n_step: int = 1
     gamma: float = 0.99
+    reward_scale: float = 1.0  # rewards are multiplied by this in the replay (what the critic learns)
     feature_dim: int = 50
     hidden: tuple[int, ...] = (1024, 1024)
     replay_size: int = 100_000  # env steps kept, over all envs
@@ -161,7 +162,8 @@ class OffPolicyAgent(abc.ABC):
         episodes that just ended (0 elsewhere)."""
         env = self.env.step(state.env, action)
         replay = self.replay.add(state.replay, Step(frame=state.env.pixels[..., -3:], first=state.first, action=action,
-                                                    reward=env.reward, terminated=env.terminated,
+                                                    reward=self.config.reward_scale * env.reward,
+                                                    terminated=env.terminated,
                                                     truncated=env.truncated))
         episode_return = state.episode_return + env.reward
         state = state.replace(env=env, first=env.done, replay=replay,

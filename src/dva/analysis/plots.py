@@ -47,8 +47,8 @@ def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
     return grid, values.mean(0), values.std(0)
 
 
-def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return") -> list[Path]:
-    """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png``; returns their paths."""
+def grouped_curves(run_dirs: list[Path], metric: str) -> dict[str, list[dict[str, np.ndarray]]]:
+    """The runs' curves of ``metric`` grouped by :func:`run_label` (the seeds of one setting)."""
     if metric not in METRICS:
         raise ValueError(f"metric {metric!r} is not allowed; use one of: {', '.join(METRICS)}")
     groups: dict[str, list[dict[str, np.ndarray]]] = defaultdict(list)
@@ -57,6 +57,72 @@ def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return") 
         if len(curve[metric]) == 0:
             raise ValueError(f"{run_dir} has no {metric} logged yet")
         groups[run_label(run_dir)].append(curve)
+    return groups
+
+
+def first_reach(curve: dict[str, np.ndarray], metric: str, threshold: float) -> tuple[float, float] | None:
+    """``(wall_time, env_steps)`` of the first logged point with ``metric ≥ threshold``, or None."""
+    reached = np.flatnonzero(curve[metric] >= threshold)
+    if len(reached) == 0:
+        return None
+    return float(curve["wall_time"][reached[0]]), float(curve["env_steps"][reached[0]])
+
+
+def summarize_runs(run_dirs: list[Path], metric: str = "eval_return", threshold: float | None = None) -> list[dict]:
+    """One row per setting: seeds, final and best ``metric`` (mean ± std over seeds), run length,
+    and with a ``threshold`` how many seeds reached it and the median wall-clock and env steps
+    they took (NaN when none did)."""
+    rows = []
+    for label, curves in grouped_curves(run_dirs, metric).items():
+        final = np.array([c[metric][-1] for c in curves])
+        best = np.array([c[metric].max() for c in curves])
+        row = {"setting": label, "seeds": len(curves), "final_mean": final.mean(), "final_std": final.std(),
+               "best_mean": best.mean(), "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
+               "env_steps": np.mean([c["env_steps"][-1] for c in curves])}
+        if threshold is not None:
+            reached = [r for r in (first_reach(c, metric, threshold) for c in curves) if r is not None]
+            row.update(reached=len(reached),
+                       minutes_to_threshold=np.median([r[0] for r in reached]) / 60 if reached else np.nan,
+                       env_steps_to_threshold=np.median([r[1] for r in reached]) if reached else np.nan)
+        rows.append(row)
+    return rows
+
+
+def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> str:
+    """:func:`summarize_runs`'s rows as a markdown table."""
+    header = ["setting", "seeds", f"final {metric}", f"best {metric}", "minutes", "env steps"]
+    if threshold is not None:
+        header += [f"seeds ≥ {threshold:g}", "minutes to it (median)", "env steps to it (median)"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for row in rows:
+        cells = [row["setting"], str(row["seeds"]), f"{row['final_mean']:.0f} ± {row['final_std']:.0f}",
+                 f"{row['best_mean']:.0f}", f"{row['minutes']:.1f}", f"{row['env_steps']:.0f}"]
+        if threshold is not None:
+            cells += [f"{row['reached']} / {row['seeds']}", f"{row['minutes_to_threshold']:.1f}",
+                      f"{row['env_steps_to_threshold']:.0f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_summary(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return",
+                  threshold: float | None = None) -> tuple[Path, str]:
+    """Write ``summary.csv`` and ``summary.md`` (:func:`summarize_runs`); returns the CSV's path and
+    the markdown."""
+    rows = summarize_runs(run_dirs, metric, threshold)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "summary.csv"
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    markdown = summary_markdown(rows, metric, threshold)
+    (out_dir / "summary.md").write_text(markdown)
+    return path, markdown
+
+
+def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return") -> list[Path]:
+    """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png``; returns their paths."""
+    groups = grouped_curves(run_dirs, metric)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for x_key, x_label in AXES.items():
