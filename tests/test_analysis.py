@@ -33,21 +33,24 @@ def test_per_million_steps_splits_the_iteration_by_hand():
 
 
 def test_cost_ratios_divide_visual_shac_by_dva():
-    rows = [{"task": "hopper", "algo": "dva", "backward_s": 0.2, "peak_memory_mb": 100.0},
-            {"task": "hopper", "algo": "shac-pixels", "backward_s": 0.5, "peak_memory_mb": 400.0},
-            {"task": "cheetah", "algo": "dva", "backward_s": 1.0, "peak_memory_mb": 10.0},
-            {"task": "cheetah", "algo": "shac-pixels", "backward_s": 3.0, "peak_memory_mb": 20.0}]
-    hopper, cheetah = ratios(rows)
-    assert hopper == pytest.approx({"task": "hopper", "backward_ratio": 2.5, "memory_ratio": 4.0,
+    rows = [{"task": "hopper", "algo": "dva", "variant": "dva", "backward_s": 0.2, "peak_memory_mb": 100.0},
+            {"task": "hopper", "algo": "dva", "variant": "dva, chunk 4", "backward_s": 0.25, "peak_memory_mb": 50.0},
+            {"task": "hopper", "algo": "shac-pixels", "variant": "shac-pixels", "backward_s": 0.5, "peak_memory_mb": 400.0},
+            {"task": "cheetah", "algo": "dva", "variant": "dva", "backward_s": 1.0, "peak_memory_mb": 10.0},
+            {"task": "cheetah", "algo": "shac-pixels", "variant": "shac-pixels", "backward_s": 3.0, "peak_memory_mb": 20.0}]
+    hopper, hopper_chunked, cheetah = ratios(rows)
+    assert hopper == pytest.approx({"task": "hopper", "variant": "dva", "backward_ratio": 2.5, "memory_ratio": 4.0,
                                     "paper_backward_ratio": 0.51 / 0.19})
+    assert hopper_chunked["variant"] == "dva, chunk 4" and hopper_chunked["memory_ratio"] == pytest.approx(8.0)
+    assert hopper_chunked["backward_ratio"] == pytest.approx(2.0)
     assert cheetah["task"] == "cheetah" and cheetah["backward_ratio"] == pytest.approx(3.0)
     assert np.isnan(cheetah["paper_backward_ratio"])  # not in the paper's Table 1
 
 
 def test_analyze_cost_end_to_end(tmp_path, capsys):
-    main(["analyze", "cost", "--tasks", "cartpole_swingup", *TINY, "--out", str(tmp_path)])
+    main(["analyze", "cost", "--tasks", "cartpole_swingup", *TINY, "--chunk", "2", "--out", str(tmp_path)])
     costs = read_rows(tmp_path / "cost" / "cost.csv")
-    assert [r["algo"] for r in costs] == ["dva", "shac-pixels"]
+    assert [r["variant"] for r in costs] == ["dva", "dva, chunk 2", "shac-pixels"]
     for row in costs:
         assert float(row["backward_s"]) > 0
         # at least the 8 × 4 stacked 24² frames (uint8) the rollout keeps for the backward pass

@@ -124,7 +124,7 @@ def test_drqv2_acts_with_the_actors_mean(small_agent):
 
 
 def test_replay_stores_rewards_times_reward_scale():
-    agent, state, _ = small_off_policy_agent("drqv2", 0, seed_steps=8, reward_scale=0.5)
+    agent, state, _ = small_off_policy_agent("drqv2", 1, seed_steps=8, reward_scale=0.5)
     action = jnp.full((4, 1), 0.3)
     after, finished = jax.jit(agent.collect)(state, action)
     stored = after.replay.experience.reward[:, after.replay.current_index - 1]

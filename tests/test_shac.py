@@ -150,6 +150,19 @@ def test_batched_actor_gradient_equals_reverse_mode_through_the_rollout(setup):
     np.testing.assert_allclose(flat(fast), flat(direct), rtol=1e-4, atol=1e-6 * np.abs(flat(direct)).max())
 
 
+def test_chunked_actor_backward_equals_the_batched_one(setup):
+    """Recomputing the actor two steps at a time (less memory) gives the same gradient. (The
+    reshape into chunks is the same for pixel observations; one compile here keeps the suite short.)"""
+    shac, train, noise = setup
+    _, _, batched = shac.actor_gradient(train.actor_params, train, noise)
+    chunked_agent = SHAC(shac.env, dataclasses.replace(shac.config, actor_backward_chunk=2))
+    _, _, chunked = jax.jit(chunked_agent.actor_gradient)(train.actor_params, train, noise)
+    assert np.abs(flat(batched)).max() > 0
+    np.testing.assert_allclose(flat(chunked), flat(batched), rtol=1e-5, atol=1e-7 * np.abs(flat(batched)).max())
+    with pytest.raises(ValueError, match="actor_backward_chunk = 4 is not allowed"):
+        dataclasses.replace(shac.config, actor_backward_chunk=4)
+
+
 def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     """Through pixels: the second action depends on the first state only via the rendered frame
     (and the physics in between); visual SHAC differentiates that path, D.Va cuts it exactly."""

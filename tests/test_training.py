@@ -117,6 +117,10 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
     assert [int(r["env_steps"]) for r in log] == [int(teacher_end["env_steps"]) + 32 * i for i in range(3)]
     assert float(log[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
     assert float(log[-1]["wall_time"]) > float(teacher_end["wall_time"]) and log[-1]["bc_loss"] != ""
+    with pytest.raises(ValueError, match="DAgger needs a teacher on the state"):
+        train("cartpole_balance", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
+              num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200)
+
     # A teacher trained within the same call (here a stand-in that takes 2 s) is counted once: the
     # student's clock starts at the teacher's logged end, not 2 s later.
     def train_teacher(config, *args):
@@ -128,6 +132,3 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
                     eval_every=None, num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200,
                     actor_hidden=(16,), trunk=16)
     assert float(rows(in_call)[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
-    with pytest.raises(ValueError, match="DAgger needs a teacher on the state"):
-        train("cartpole_balance", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
-              num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200)

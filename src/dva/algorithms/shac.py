@@ -49,6 +49,12 @@ class SHACConfig:
     step to the one before (AHAC's per-step clipping, spec §7), in units of one env's window return
     (the loss is their mean over N·h, so the bound on the loss's cotangent is this ÷ N·h);
     None: exact gradients."""
+    actor_backward_chunk: int | None = None
+    """Decoupled gradients only: None differentiates the actor (the encoder above all) for all
+    h × N observations in one batch, from the activations the rollout kept (the fastest on CPU);
+    c recomputes the actor's forward for c steps at a time inside a scan and adds up their
+    gradients — the same gradient, with one chunk's activations in memory instead of h steps'
+    (for memory-bound GPUs; ``dva analyze cost`` measures both)."""
     target_alpha: float = 0.2
     critic_iterations: int = 16
     critic_minibatches: int = 4
@@ -66,6 +72,10 @@ class SHACConfig:
             raise ValueError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.gradient not in ("decoupled", "full"):
             raise ValueError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
+        chunk = self.actor_backward_chunk
+        if chunk is not None and (chunk < 1 or self.horizon % chunk):
+            raise ValueError(f"actor_backward_chunk = {chunk!r} is not allowed; use None or a divisor of "
+                             f"horizon = {self.horizon}")
         if (self.num_envs * self.horizon) % self.critic_minibatches:
             raise ValueError(f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
                              f"{self.critic_minibatches} critic minibatches")
@@ -183,7 +193,7 @@ class SHAC:
             if cfg.gradient == "decoupled":
                 observation = jax.lax.stop_gradient(observation)
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
-            if cfg.gradient == "decoupled":  # keep the actor's backward pass for actor_gradient
+            if cfg.gradient == "decoupled" and cfg.actor_backward_chunk is None:  # kept for actor_gradient
                 pre_tanh, actor_vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)
             else:
                 pre_tanh, actor_vjp = self.pre_tanh_action(actor_params, observation, eps), None
@@ -230,16 +240,33 @@ class SHAC:
         to action offsets), and the actor — the pixel encoder above all — is differentiated
         afterwards with the backward passes the rollout kept, all h steps in one batch, instead of
         step by step inside the reverse scan (and without recomputing its forward pass).
+        With ``actor_backward_chunk`` the actor is differentiated ``c`` steps at a time instead,
+        recomputing their forward pass (see :class:`SHACConfig`).
         Full: plain reverse mode through everything.
         """
-        if self.config.gradient == "full":
+        cfg = self.config
+        if cfg.gradient == "full":
             (loss, aux), grads = jax.value_and_grad(self.rollout, has_aux=True)(actor_params, train, noise)
             return loss, aux, grads
         offsets = jnp.zeros_like(noise)
         (loss, aux), action_grad = jax.value_and_grad(
             lambda w: self.rollout(actor_params, train, noise, w), has_aux=True)(offsets)
-        per_step = jax.vmap(lambda vjp, g: vjp(g)[0])(aux[-1]["actor_vjp"], action_grad)
-        return loss, aux, jax.tree.map(lambda g: g.sum(0), per_step)
+        taken = aux[-1]
+        if cfg.actor_backward_chunk is None:
+            per_step = jax.vmap(lambda vjp, g: vjp(g)[0])(taken["actor_vjp"], action_grad)
+            return loss, aux, jax.tree.map(lambda g: g.sum(0), per_step)
+
+        def chunks(x: jax.Array) -> jax.Array:  # (h, N, ...) → (h / c, c·N, ...)
+            return x.reshape((-1, cfg.actor_backward_chunk * x.shape[1]) + x.shape[2:])
+
+        def add_chunk(total, chunk):
+            observation, eps, grad = chunk
+            _, vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)
+            return jax.tree.map(jnp.add, total, vjp(grad)[0]), None
+
+        grads, _ = jax.lax.scan(add_chunk, jax.tree.map(jnp.zeros_like, actor_params),
+                                (chunks(taken["observations"]), chunks(noise), chunks(action_grad)))
+        return loss, aux, grads
 
     # ---- the critic ---------------------------------------------------------------------------
     def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):

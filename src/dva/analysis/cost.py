@@ -64,28 +64,36 @@ def available_memory_bytes() -> float:
 
 
 def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image_size: int = 84,
-                  seed: int = 0) -> list[dict]:
-    """One row per task and algorithm of :data:`COMPARED` (same networks, envs, horizon, images)."""
+                  seed: int = 0, chunk: int | None = 4) -> list[dict]:
+    """One row per task and variant: D.Va (its actor backward batched over all frames), D.Va with
+    ``actor_backward_chunk = chunk`` (unless None) and visual SHAC — same networks, envs, horizon,
+    images."""
+    variants = [("dva", None)] + ([("dva", chunk)] if chunk is not None else []) + [(COMPARED[1], None)]
     rows = []
     for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
-        for algo in COMPARED:
-            config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size)
+        for algo, algo_chunk in variants:
+            overrides = {} if algo_chunk is None else {"actor_backward_chunk": algo_chunk}
+            config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size,
+                                 **overrides)
             agent = build_agent(task, algo, config)
             state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
-            rows.append({"task": task, "algo": algo, **gradient_cost(agent, state)})
+            variant = algo if algo_chunk is None else f"{algo}, chunk {algo_chunk}"
+            rows.append({"task": task, "algo": algo, "variant": variant, "actor_backward_chunk": algo_chunk or "",
+                         **gradient_cost(agent, state)})
     return rows
 
 
 def ratios(rows: list[dict]) -> list[dict]:
-    """Per task: visual SHAC ÷ D.Va for backward time and peak memory, next to the paper's."""
-    by_key = {(r["task"], r["algo"]): r for r in rows}
+    """Per task and D.Va variant: visual SHAC ÷ D.Va for backward time and peak memory, next to the
+    paper's backward ratio."""
     out = []
     for task in dict.fromkeys(r["task"] for r in rows):
-        dva, shac = by_key[(task, COMPARED[0])], by_key[(task, COMPARED[1])]
+        shac = next(r for r in rows if r["task"] == task and r["algo"] == COMPARED[1])
         paper = PAPER_BACKWARD_S.get(task)
-        out.append({"task": task, "backward_ratio": shac["backward_s"] / dva["backward_s"],
-                    "memory_ratio": shac["peak_memory_mb"] / dva["peak_memory_mb"],
-                    "paper_backward_ratio": paper[1] / paper[0] if paper else float("nan")})
+        for dva in (r for r in rows if r["task"] == task and r["algo"] == COMPARED[0]):
+            out.append({"task": task, "variant": dva["variant"], "backward_ratio": shac["backward_s"] / dva["backward_s"],
+                        "memory_ratio": shac["peak_memory_mb"] / dva["peak_memory_mb"],
+                        "paper_backward_ratio": paper[1] / paper[0] if paper else float("nan")})
     return out
 
 
@@ -94,15 +102,17 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     table = write_csv(out_dir / "cost.csv", rows)
     ratio_rows = ratios(rows)
     ratio_table = write_csv(out_dir / "cost_ratios.csv", ratio_rows)
-    tasks = [r["task"] for r in ratio_rows]
-    by_key = {(r["task"], r["algo"]): r for r in rows}
+    tasks = list(dict.fromkeys(r["task"] for r in rows))
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    by_key = {(r["task"], r["variant"]): r for r in rows}
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
     x = np.arange(len(tasks))
+    width = 0.8 / len(variants)
     for ax, key, label in zip(axes, ("backward_s", "peak_memory_mb"), ("backward time per iteration (s)",
                                                                         "peak memory of the gradient (MB)")):
-        for i, algo in enumerate(COMPARED):
-            values = [by_key[(task, algo)][key] for task in tasks]
-            ax.bar(x + (i - 0.5) * 0.4, values, 0.4, label=algo)
+        for i, variant in enumerate(variants):
+            values = [by_key[(task, variant)][key] for task in tasks]
+            ax.bar(x + (i - (len(variants) - 1) / 2) * width, values, width, label=variant)
         ax.set_xticks(x, tasks, fontsize=8)
         ax.set_yscale("log")
         ax.set_ylabel(label)
@@ -114,13 +124,13 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     fig.savefig(figure)
     plt.close(fig)
     markdown = markdown_table(
-        ["task", "backward D.Va (s)", "backward visual SHAC (s)", "ratio", "paper ratio",
+        ["task", "D.Va variant", "backward D.Va (s)", "backward visual SHAC (s)", "ratio", "paper ratio",
          "memory D.Va (MB)", "memory visual SHAC (MB)", "ratio"],
-        [(r["task"], f"{by_key[(r['task'], 'dva')]['backward_s']:.3f}",
-          f"{by_key[(r['task'], 'shac-pixels')]['backward_s']:.3f}", f"{r['backward_ratio']:.1f}×",
+        [(r["task"], r["variant"], f"{by_key[(r['task'], r['variant'])]['backward_s']:.3f}",
+          f"{by_key[(r['task'], COMPARED[1])]['backward_s']:.3f}", f"{r['backward_ratio']:.1f}×",
           f"{r['paper_backward_ratio']:.1f}×" if np.isfinite(r["paper_backward_ratio"]) else "–",
-          f"{by_key[(r['task'], 'dva')]['peak_memory_mb']:.0f}",
-          f"{by_key[(r['task'], 'shac-pixels')]['peak_memory_mb']:.0f}", f"{r['memory_ratio']:.1f}×")
+          f"{by_key[(r['task'], r['variant'])]['peak_memory_mb']:.0f}",
+          f"{by_key[(r['task'], COMPARED[1])]['peak_memory_mb']:.0f}", f"{r['memory_ratio']:.1f}×")
          for r in ratio_rows])
     (out_dir / "cost.md").write_text(f"{title}\n\n{markdown}\n")
     return [table, ratio_table, figure, out_dir / "cost.md"], markdown
