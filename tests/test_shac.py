@@ -163,6 +163,20 @@ def test_chunked_actor_backward_equals_the_batched_one(setup):
         dataclasses.replace(shac.config, actor_backward_chunk=4)
 
 
+def test_without_the_critic_the_loss_is_the_windows_discounted_reward(setup):
+    """The value ablation: nothing is bootstrapped at the window's end (no episode ends within
+    these 6 steps of Cart-pole), so the loss is −Σ_t γ^t r_t averaged over envs and steps."""
+    shac, train, noise = setup
+    ablated = SHAC(shac.env, dataclasses.replace(shac.config, use_critic=False))
+    loss, aux = jax.jit(ablated.rollout)(train.actor_params, train, noise)
+    reward = np.asarray(aux[2].reward)
+    assert not np.asarray(aux[2].boundary)[:-1].any()
+    discounts = shac.config.gamma ** np.arange(HORIZON)[:, None]
+    assert float(loss) == pytest.approx(-(discounts * reward).sum() / (NUM_ENVS * HORIZON), rel=1e-5)
+    with_critic, _ = jax.jit(shac.rollout)(train.actor_params, train, noise)
+    assert float(with_critic) != pytest.approx(float(loss), rel=1e-5)  # the critic's bootstrap is there
+
+
 def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     """Through pixels: the second action depends on the first state only via the rendered frame
     (and the physics in between); visual SHAC differentiates that path, D.Va cuts it exactly."""

@@ -55,6 +55,9 @@ class SHACConfig:
     c recomputes the actor's forward for c steps at a time inside a scan and adds up their
     gradients — the same gradient, with one chunk's activations in memory instead of h steps'
     (for memory-bound GPUs; ``dva analyze cost`` measures both)."""
+    use_critic: bool = True
+    """False: the paper's value ablation — the window's end bootstraps nothing (V = 0) and no
+    critic is trained."""
     target_alpha: float = 0.2
     critic_iterations: int = 16
     critic_minibatches: int = 4
@@ -184,7 +187,11 @@ class SHAC:
         pre-tanh actions, exposes the gradient with respect to the open-loop actions.
         """
         cfg = self.config
-        value = lambda obs: self.critic.apply(train.target_critic_params, train.obs_stats.normalize(obs))
+
+        def value(obs: jax.Array) -> jax.Array:
+            if not cfg.use_critic:
+                return jnp.zeros(obs.shape[:-1])
+            return self.critic.apply(train.target_critic_params, train.obs_stats.normalize(obs))
 
         def step(carry, inputs):
             env, discount, discounted_sum, episode_return = carry
@@ -314,7 +321,10 @@ class SHAC:
             lambda new, old: jnp.where(healthy, new, old),
             (actor_params, actor_opt_state), (train.actor_params, train.actor_opt_state))
 
-        critic_params, critic_opt_state, critic_loss = self.critic_update(train, trajectory, critic_key)
+        if cfg.use_critic:
+            critic_params, critic_opt_state, critic_loss = self.critic_update(train, trajectory, critic_key)
+        else:
+            critic_params, critic_opt_state, critic_loss = train.critic_params, train.critic_opt_state, jnp.zeros(())
         target = jax.tree.map(lambda t, p: cfg.target_alpha * t + (1.0 - cfg.target_alpha) * p,
                               train.target_critic_params, critic_params)
         train = train.replace(
