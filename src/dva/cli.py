@@ -1,4 +1,4 @@
-"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``, ``analyze``."""
+"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``, ``compare``, ``analyze``."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from dva.algorithms.curl import CURLConfig
 from dva.algorithms.dagger import DAggerConfig
 from dva.algorithms.drqv2 import DrQV2Config
 from dva.algorithms.shac import SHACConfig
+from dva.analysis.compare import FigureName
 from dva.configs import PresetName
 from dva.tasks import TASKS, check_physics, check_task_name
 from dva.training import TrainingDiverged
@@ -220,6 +221,34 @@ class PlotCommand:
 
 
 @dataclasses.dataclass
+class CompareCommand:
+    """One of the paper's comparisons: every setting × task × seed for the same wall-clock budget,
+    then return vs wall-clock and vs env steps (PNG) and final return / time to ``--threshold``
+    (CSV + markdown) in OUT. Finished runs are skipped and interrupted ones resumed, so re-running
+    after a crash, or with more seeds or minutes, only trains what is missing."""
+
+    figure: tyro.conf.Positional[FigureName]
+    """fig4: D.Va vs DrQ-v2, CURL (and DreamerV3 once it exists); fig6: D.Va vs state-to-visual DAgger
+    (teacher's time included); fig7: D.Va vs visual SHAC; ablation-value: D.Va without its critic;
+    ablation-frames: D.Va with 1–6 stacked frames."""
+    tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
+    seeds: list[int] = dataclasses.field(default_factory=lambda: [0, 1])
+    minutes: float = 30.0
+    """Wall-clock budget of every run (compilation included)."""
+    preset: PresetName = "cpu"
+    threshold: float | None = None
+    """Report when each setting first reached this eval return (e.g. 2× a random policy's)."""
+    out: Path = Path("comparisons")
+
+    def run(self) -> None:
+        from dva.analysis.compare import compare
+
+        out = self.out / self.figure
+        paths, markdown = compare(self.figure, self.tasks, self.seeds, self.minutes, out, self.preset, self.threshold)
+        print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
+
+
+@dataclasses.dataclass
 class SizeOverrides:
     """Options shared by the analyses that build trainers: the preset's sizes, overridden."""
 
@@ -347,6 +376,7 @@ COMMANDS = {
     "train": TrainCommand,
     "eval": EvalCommand,
     "plot": PlotCommand,
+    "compare": CompareCommand,
     "analyze": AnalyzeCommand,
 }
 

@@ -47,8 +47,10 @@ def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
     return grid, values.mean(0), values.std(0)
 
 
-def grouped_curves(run_dirs: list[Path], metric: str) -> dict[str, list[dict[str, np.ndarray]]]:
-    """The runs' curves of ``metric`` grouped by :func:`run_label` (the seeds of one setting)."""
+def grouped_curves(run_dirs: list[Path], metric: str,
+                   labels: dict[Path, str] | None = None) -> dict[str, list[dict[str, np.ndarray]]]:
+    """The runs' curves of ``metric`` grouped by label (the seeds of one setting): ``labels[run_dir]``
+    where given, else :func:`run_label`."""
     if metric not in METRICS:
         raise ValueError(f"metric {metric!r} is not allowed; use one of: {', '.join(METRICS)}")
     groups: dict[str, list[dict[str, np.ndarray]]] = defaultdict(list)
@@ -56,7 +58,7 @@ def grouped_curves(run_dirs: list[Path], metric: str) -> dict[str, list[dict[str
         curve = read_curve(run_dir, metric)
         if len(curve[metric]) == 0:
             raise ValueError(f"{run_dir} has no {metric} logged yet")
-        groups[run_label(run_dir)].append(curve)
+        groups[labels[run_dir] if labels and run_dir in labels else run_label(run_dir)].append(curve)
     return groups
 
 
@@ -68,12 +70,13 @@ def first_reach(curve: dict[str, np.ndarray], metric: str, threshold: float) -> 
     return float(curve["wall_time"][reached[0]]), float(curve["env_steps"][reached[0]])
 
 
-def summarize_runs(run_dirs: list[Path], metric: str = "eval_return", threshold: float | None = None) -> list[dict]:
+def summarize_runs(run_dirs: list[Path], metric: str = "eval_return", threshold: float | None = None,
+                   labels: dict[Path, str] | None = None) -> list[dict]:
     """One row per setting: seeds, final and best ``metric`` (mean ± std over seeds), run length,
     and with a ``threshold`` how many seeds reached it and the median wall-clock and env steps
     they took (NaN when none did)."""
     rows = []
-    for label, curves in grouped_curves(run_dirs, metric).items():
+    for label, curves in grouped_curves(run_dirs, metric, labels).items():
         final = np.array([c[metric][-1] for c in curves])
         best = np.array([c[metric].max() for c in curves])
         row = {"setting": label, "seeds": len(curves), "final_mean": final.mean(), "final_std": final.std(),
@@ -105,10 +108,10 @@ def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> 
 
 
 def write_summary(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return",
-                  threshold: float | None = None) -> tuple[Path, str]:
+                  threshold: float | None = None, labels: dict[Path, str] | None = None) -> tuple[Path, str]:
     """Write ``summary.csv`` and ``summary.md`` (:func:`summarize_runs`); returns the CSV's path and
     the markdown."""
-    rows = summarize_runs(run_dirs, metric, threshold)
+    rows = summarize_runs(run_dirs, metric, threshold, labels)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "summary.csv"
     with path.open("w", newline="") as f:
@@ -120,9 +123,11 @@ def write_summary(run_dirs: list[Path], out_dir: Path, metric: str = "eval_retur
     return path, markdown
 
 
-def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return") -> list[Path]:
-    """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png``; returns their paths."""
-    groups = grouped_curves(run_dirs, metric)
+def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return",
+              labels: dict[Path, str] | None = None) -> list[Path]:
+    """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png`` (curves grouped as in
+    :func:`grouped_curves`); returns their paths."""
+    groups = grouped_curves(run_dirs, metric, labels)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for x_key, x_label in AXES.items():
