@@ -66,6 +66,11 @@ def test_dagger_student_rollouts_are_still_labelled_and_the_student_learns_the_l
     # It fits the labels: the cloning loss over everything stored falls well below the untrained one.
     assert float(agent.bc_loss(state.student, pixels, labels)) < 0.2 * float(agent.bc_loss(initial.student, pixels, labels))
     assert agent.act(agent.policy(state), observations).shape == (NUM_ENVS, 1)
-    stop = dagger(stop_bc_loss=1e9)
-    _, metrics = jax.jit(stop.iteration)(jax.jit(stop.init)(jax.random.PRNGKey(0)))
-    assert bool(metrics["stop"])  # below the threshold: the loop ends the run
+    student_driven = dagger(teacher_fraction=0.0, stop_bc_loss=1e9)
+    _, metrics = jax.jit(student_driven.iteration)(jax.jit(student_driven.init)(jax.random.PRNGKey(0)))
+    assert bool(metrics["stop"])  # the student drives and its loss is below the threshold: the run ends
+    # The stop rule waits until the student drives: with the teacher acting, even a loss below
+    # the threshold does not end the run (its samples are the teacher's states, not the student's).
+    teacher_driven = dagger(stop_bc_loss=1e9)
+    _, metrics = jax.jit(teacher_driven.iteration)(jax.jit(teacher_driven.init)(jax.random.PRNGKey(0)))
+    assert float(metrics["fresh_bc_loss"]) < 1e9 and not bool(metrics["stop"])

@@ -6,7 +6,10 @@ env follows the teacher with probability ``teacher_fraction · teacher_decay^ite
 else the student — relabels every visited observation with the teacher's deterministic action,
 adds the (frames, action) pairs to a replay of at most ``replay_size`` and takes
 ``updates_per_iteration`` Adam steps on the behaviour-cloning loss ``‖tanh μ_student(o) − a*‖²``
-over sampled batches. Training stops once that loss falls below ``stop_bc_loss``.
+over sampled batches. Training stops once the student drives (the teacher's share is at most
+``stop_teacher_fraction``) and the cloning loss on the states just visited, measured before they
+are trained on, is below ``stop_bc_loss`` — on the replay's own samples the loss is near 0 after
+the first iteration (a few hundred teacher-driven frames), so it cannot be the criterion.
 
 The teacher is a finished ``dva train --algo shac`` run (``teacher``); without one, ``dva train
 --algo dagger`` trains it first (``teacher_minutes``) and the student's logged wall-clock and
@@ -46,6 +49,7 @@ class DAggerConfig:
     teacher_fraction: float = 1.0  # probability of acting with the teacher at iteration 0 …
     teacher_decay: float = 0.9  # … times this per iteration
     stop_bc_loss: float = 0.1
+    stop_teacher_fraction: float = 0.1  # the stop rule applies once the teacher acts this rarely
     trunk: int = 64
     actor_hidden: tuple[int, ...] = (64, 64)
     iterations: int = 2000  # the run's length when no budget is given
@@ -69,7 +73,7 @@ class DAgger:
     ``teacher`` is the teacher's agent and ``teacher_policy`` its :meth:`policy` parameters.
     """
 
-    metric_names = ("bc_loss", "teacher_fraction")
+    metric_names = ("bc_loss", "fresh_bc_loss", "teacher_fraction")
 
     def __init__(self, env: PixelObservations, config: DAggerConfig, teacher, teacher_policy,
                  teacher_cost: tuple[float, int] = (0.0, 0)) -> None:
@@ -130,6 +134,7 @@ class DAgger:
             step, (state.env, state.episode_return), jax.random.split(mix_key, cfg.horizon))
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
         replay = self.replay.add(state.replay, {"pixels": flat(pixels), "action": flat(labels)})
+        fresh_bc_loss = self.bc_loss(state.student, flat(pixels), flat(labels))  # held out: not yet trained on
 
         def update(carry, key):
             student, opt_state = carry
@@ -141,8 +146,9 @@ class DAgger:
         (student, opt_state), losses = jax.lax.scan(update, (state.student, state.opt_state),
                                                     jax.random.split(update_key, cfg.updates_per_iteration))
         bc_loss = losses[-1]
-        metrics = {"bc_loss": bc_loss, "teacher_fraction": fraction, "healthy": jnp.isfinite(bc_loss),
-                   "stop": bc_loss < cfg.stop_bc_loss,
+        metrics = {"bc_loss": bc_loss, "fresh_bc_loss": fresh_bc_loss, "teacher_fraction": fraction,
+                   "healthy": jnp.isfinite(bc_loss),
+                   "stop": (fresh_bc_loss < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction),
                    "finished_return_sum": finished.sum(), "finished_episodes": done.sum()}
         return state.replace(student=student, opt_state=opt_state, env=env, replay=replay,
                              episode_return=episode_return, key=key, iteration=state.iteration + 1), metrics
