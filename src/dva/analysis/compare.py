@@ -59,26 +59,17 @@ def figure_settings(figure: str, tasks: list[str]) -> list[Setting]:
     return [Setting(label, task, algo, overrides) for task in tasks for label, algo, overrides in per_task]
 
 
-def logged_minutes(run_dir: Path) -> float:
-    """Wall-clock minutes a run has logged (0 when it has logged nothing)."""
-    path = run_dir / "progress.csv"
-    lines = path.read_text().splitlines() if path.exists() else []
-    if len(lines) < 2:
-        return 0.0
-    header, last = lines[0].split(","), lines[-1].split(",")
-    return float(last[header.index("wall_time")]) / 60
-
-
 def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path) -> str:
     """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
-    from dva.training import checkpoint_manager, train
+    from dva.training import checkpoint_manager, read_progress, train
 
     marker = run_dir / COMPLETE
     if marker.exists() and json.loads(marker.read_text())["minutes"] >= minutes:
         return "skipped (complete)"
     if (run_dir / "run.json").exists() and checkpoint_manager(run_dir).latest_step() is not None:
+        logged = read_progress(run_dir)  # the minutes it has, wall_time of its last row
         train(setting.task, setting.algo, run_dir=run_dir, resume=True,
-              minutes=max(minutes - logged_minutes(run_dir), 0.0))
+              minutes=max(minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes, 0.0))
         action = "resumed"
     else:
         shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
