@@ -51,8 +51,8 @@ def test_dva_on_cartpole_pixels_beats_random_by_a_wide_margin(tmp_path):
     assert late_eval_return(run_dir) > 3 * random_return("cartpole_swingup")
 
 
-@pytest.mark.parametrize("algo", ["drqv2", "curl"])
-def test_off_policy_baselines_learn_cartpole_balance_from_pixels(tmp_path, algo):
-    """DrQ-v2 and CURL from pixels, CPU preset: 20 minutes each (seed phase included)."""
+@pytest.mark.parametrize("algo", ["drqv2", "curl", "dreamerv3"])
+def test_pixel_baselines_learn_cartpole_balance(tmp_path, algo):
+    """DrQ-v2, CURL and DreamerV3 from pixels, CPU preset: 20 minutes each (seed phase included)."""
     run_dir = train("cartpole_balance", algo, preset="cpu", minutes=20, run_dir=tmp_path / "run", eval_every=100)
     assert late_eval_return(run_dir) > 2 * random_return("cartpole_balance")

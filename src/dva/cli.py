@@ -14,6 +14,7 @@ import tyro
 from dva.algorithms import ALGORITHMS, AlgoName
 from dva.algorithms.curl import CURLConfig
 from dva.algorithms.dagger import DAggerConfig
+from dva.algorithms.dreamerv3 import DreamerV3Config
 from dva.algorithms.drqv2 import DrQV2Config
 from dva.algorithms.shac import SHACConfig
 from dva.analysis.compare import FigureName
@@ -97,17 +98,20 @@ SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
 DrQV2Overrides = optional_fields(DrQV2Config)
 CURLOverrides = optional_fields(CURLConfig)
 DAggerOverrides = optional_fields(DAggerConfig, aliases={"teacher": "--teacher"})
-CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig, "dagger": DAggerConfig}  # TrainCommand field → the config it overrides
+DreamerV3Overrides = optional_fields(DreamerV3Config, exclude=("frame_stack",))
+CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig, "dagger": DAggerConfig,
+                 "dreamerv3": DreamerV3Config}  # TrainCommand field → the config it overrides
 
 
 @dataclasses.dataclass
 class TrainCommand:
-    """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full), DPG on state or
-    visual SHAC (pixels from the differentiable renderer, full gradient)."""
+    """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full), DPG on state, visual
+    SHAC (pixels from the differentiable renderer, full gradient), or a baseline (DrQ-v2, CURL,
+    state-to-visual DAgger, DreamerV3)."""
 
     task: str = "cartpole_swingup"
     algo: AlgoName = "dva"
-    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl | dagger"""
+    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl | dagger | dreamerv3"""
     preset: PresetName = "cpu"
     """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
     seed: int = 0
@@ -136,6 +140,8 @@ class TrainCommand:
     dagger: DAggerOverrides = dataclasses.field(default_factory=DAggerOverrides)
     """Hyperparameters of dagger (unset: the preset's); --teacher (--dagger.teacher) RUN_DIR names a
     SHAC run on the state to imitate (default: train one first for --dagger.teacher-minutes)."""
+    dreamerv3: DreamerV3Overrides = dataclasses.field(default_factory=DreamerV3Overrides)
+    """Hyperparameters of dreamerv3 (unset: the preset's)."""
 
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""

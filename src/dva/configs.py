@@ -81,6 +81,21 @@ def curl_preset(task: str, preset: str) -> dict:
     return dict(CURL_CPU if preset == "cpu" else {}, reward_scale=OFF_POLICY_REWARD_SCALE)
 
 
+# ---- DreamerV3 (spec §3) --------------------------------------------------------------------------
+# The paper's settings are the same on every task (network sizes: the reference's "S" model). The
+# CPU preset keeps the method — RSSM with 32 × 32 categorical latents and unimix, symlog two-hot
+# heads, free bits, λ-returns with return normalisation, the slow critic, 64² images, 4 envs — at
+# a size a CPU core can update often: 256-wide networks, CNN depth 16, sequences of 32, a train
+# ratio of 64 (one update per 2 steps of the 4 envs; the paper's 512 with sequences of 64 makes
+# 2 updates per step) and a 100k-step replay (1.2 GB of 64² frames).
+DREAMERV3_CPU = dict(deter=256, units=256, cnn_depth=16, batch_length=32, train_ratio=64.0, replay_size=100_000)
+
+
+def dreamerv3_preset(task: str, preset: str) -> dict:
+    """DreamerV3's hyperparameters under ``preset`` (task-independent)."""
+    return dict(DREAMERV3_CPU) if preset == "cpu" else {}
+
+
 # ---- state-to-visual DAgger (spec §3) -------------------------------------------------------------
 # The student has D.Va's networks for the task (SHAC_PAPER's trunk and actor); the paper's 64 envs
 # × 32 steps, or the CPU preset's 16 × 16 at 48² with a 20k-observation replay (415 MB).

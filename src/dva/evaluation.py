@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -12,11 +13,14 @@ import jax.numpy as jnp
 from dva.envs import Observation, PixelObservations
 from dva.tasks import Task
 
-Policy = Callable[[Observation, jax.Array], jax.Array]  # (observation, key) → action in [−1, 1]
+# (observation, memory, key) → (action in [−1, 1], memory): the memory is what a recurrent policy
+# carries between steps (DreamerV3's latent state), ``()`` for the others.
+Policy = Callable[[Observation, Any, jax.Array], tuple[jax.Array, Any]]
 
 
-def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, record: bool = False):
-    """Undiscounted return of one full episode per env under ``policy``: (N,).
+def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, record: bool = False,
+                    memory: Any = ()):
+    """Undiscounted return of one full episode per env under ``policy``, starting from ``memory``: (N,).
 
     Episodes that end early stop counting (the auto-reset continues them unseen). With
     ``record=True`` also returns, per step, ``qpos`` (T, N, nq) and the newest frame the policy saw
@@ -26,15 +30,16 @@ def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, reco
     state = env.reset(reset_key)
 
     def step(carry, step_key):
-        state, total, running = carry
-        state = env.step(state, policy(env.observe(state), step_key))
+        state, memory, total, running = carry
+        action, memory = policy(env.observe(state), memory, step_key)
+        state = env.step(state, action)
         total = total + running * state.reward
         shown = (state.data.qpos, state.pixels[..., -3:]) if record else None
-        return (state, total, running * (1.0 - state.done)), shown
+        return (state, memory, total, running * (1.0 - state.done)), shown
 
     ones = jnp.ones(env.num_envs)
     keys = jax.random.split(policy_key, env.episode_steps)
-    (_, total, _), shown = jax.lax.scan(step, (state, 0.0 * ones, ones), keys)
+    (_, _, total, _), shown = jax.lax.scan(step, (state, memory, 0.0 * ones, ones), keys)
     return (total, *shown) if record else total
 
 
@@ -42,7 +47,7 @@ def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, reco
 def random_policy_returns(task: Task, key: jax.Array, num_envs: int) -> jax.Array:
     """The reference a trained policy is judged against: uniform random actions in [−1, 1], (N,)."""
 
-    def uniform(_observation: Observation, step_key: jax.Array) -> jax.Array:
-        return jax.random.uniform(step_key, (num_envs, task.action_dim), minval=-1.0, maxval=1.0)
+    def uniform(_observation: Observation, memory: tuple, step_key: jax.Array) -> tuple[jax.Array, tuple]:
+        return jax.random.uniform(step_key, (num_envs, task.action_dim), minval=-1.0, maxval=1.0), memory
 
     return evaluate_policy(PixelObservations(task, num_envs), uniform, key)

@@ -1,7 +1,7 @@
 """Networks (spec §1, §3): the DrQ-v2 pixel encoder every pixel algorithm shares; D.Va / SHAC's
 ELU+LayerNorm MLPs, Gaussian actor with a state-independent log-std and state critic; DrQ-v2's
-deterministic actor and twin Q critic; CURL's squashed-Gaussian actor and projection; running
-mean/std statistics."""
+deterministic actor and twin Q critic; CURL's squashed-Gaussian actor and projection; DreamerV3's conv encoder and decoder, RSSM
+and heads; running mean/std statistics."""
 
 from __future__ import annotations
 
@@ -194,6 +194,101 @@ class Projection(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         return nn.LayerNorm()(nn.Dense(self.features)(x))
+
+
+# ---- DreamerV3 --------------------------------------------------------------------------------
+def norm_silu(x: jax.Array, width: int) -> jax.Array:
+    """DreamerV3's layer: Dense → LayerNorm → SiLU (call inside a compact module)."""
+    return nn.silu(nn.LayerNorm()(nn.Dense(width)(x)))
+
+
+class DreamerMLP(nn.Module):
+    """``layers`` × (Dense → LayerNorm → SiLU), then a linear output (zero-initialised for the
+    reward and critic heads, so that they start predicting 0)."""
+
+    units: int
+    layers: int
+    out: int
+    zero_output: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for _ in range(self.layers):
+            x = norm_silu(x, self.units)
+        init = nn.initializers.zeros if self.zero_output else nn.initializers.lecun_normal()
+        return nn.Dense(self.out, kernel_init=init)(x)
+
+
+class ConvEncoder(nn.Module):
+    """4 × (4×4 conv, stride 2, LayerNorm, SiLU) with ``depth`` × (1, 2, 4, 8) channels: a uint8
+    (…, S, S, 3) image becomes (S/16)² × 8·depth features."""
+
+    depth: int = 32
+
+    @nn.compact
+    def __call__(self, pixels: jax.Array) -> jax.Array:
+        batch_shape = pixels.shape[:-3]
+        x = pixels.reshape((-1,) + pixels.shape[-3:]).astype(jnp.float32) / 255.0 - 0.5
+        for multiplier in (1, 2, 4, 8):
+            x = nn.silu(nn.LayerNorm()(nn.Conv(self.depth * multiplier, (4, 4), (2, 2), "SAME")(x)))
+        return x.reshape(batch_shape + (-1,))
+
+
+class ConvDecoder(nn.Module):
+    """The encoder mirrored with transposed convolutions: features → (…, S, S, 3) images in the
+    encoder's ``x/255 − 0.5`` scale."""
+
+    depth: int = 32
+    image_size: int = 64
+
+    @nn.compact
+    def __call__(self, features: jax.Array) -> jax.Array:
+        batch_shape, side = features.shape[:-1], self.image_size // 16
+        x = nn.Dense(side * side * 8 * self.depth)(features.reshape(-1, features.shape[-1]))
+        x = x.reshape(-1, side, side, 8 * self.depth)
+        for multiplier in (4, 2, 1):
+            x = nn.silu(nn.LayerNorm()(nn.ConvTranspose(self.depth * multiplier, (4, 4), (2, 2), "SAME")(x)))
+        x = nn.ConvTranspose(3, (4, 4), (2, 2), "SAME")(x)
+        return x.reshape(batch_shape + x.shape[1:])
+
+
+class RSSM(nn.Module):
+    """DreamerV3's recurrent state-space model: a deterministic GRU state ``h`` and a stochastic
+    state ``z`` of ``stoch`` categoricals with ``classes`` classes each (one-hot, (…, stoch, classes)).
+
+    ``transition(h, z, a)`` is the next ``h``; ``prior(h)`` predicts ``z``'s logits from ``h`` alone
+    (imagination), ``posterior(h, embedding)`` from ``h`` and the image (observation); the agent
+    mixes them with the uniform distribution (``dreamer_math.unimix_logits``)."""
+
+    deter: int = 512
+    stoch: int = 32
+    classes: int = 32
+    units: int = 512
+
+    def setup(self) -> None:
+        self.input_layer = nn.Dense(self.units)
+        self.input_norm = nn.LayerNorm()
+        self.cell = nn.GRUCell(features=self.deter)
+        self.prior_net = DreamerMLP(self.units, 1, self.stoch * self.classes)
+        self.posterior_net = DreamerMLP(self.units, 1, self.stoch * self.classes)
+
+    def transition(self, deter: jax.Array, stoch: jax.Array, action: jax.Array) -> jax.Array:
+        x = jnp.concatenate([stoch.reshape(stoch.shape[:-2] + (-1,)), action], axis=-1)
+        return self.cell(deter, nn.silu(self.input_norm(self.input_layer(x))))[0]
+
+    def _logits(self, net: nn.Module, x: jax.Array) -> jax.Array:
+        return net(x).reshape(x.shape[:-1] + (self.stoch, self.classes))
+
+    def prior(self, deter: jax.Array) -> jax.Array:
+        return self._logits(self.prior_net, deter)
+
+    def posterior(self, deter: jax.Array, embedding: jax.Array) -> jax.Array:
+        return self._logits(self.posterior_net, jnp.concatenate([deter, embedding], axis=-1))
+
+    def __call__(self, deter: jax.Array, stoch: jax.Array, action: jax.Array, embedding: jax.Array):
+        """Every sub-network once (what ``init`` needs)."""
+        deter = self.transition(deter, stoch, action)
+        return self.prior(deter), self.posterior(deter, embedding)
 
 
 class RunningStats(struct.PyTreeNode):

@@ -1,4 +1,5 @@
-"""A replay buffer of uint8 frames on the device for the off-policy pixel baselines (DrQ-v2, CURL).
+"""Replay buffers of uint8 frames on the device: sequences for DreamerV3, n-step transitions with
+frame stacks for the off-policy pixel baselines (DrQ-v2, CURL).
 
 Built on ``flashbax``'s trajectory buffer (jittable, time-major per env, never samples unwritten
 slots). Each env step stores only the newest frame, not the whole stack — a third of the memory
@@ -48,19 +49,17 @@ def stack_at(frames: jax.Array, first: jax.Array, position: int, frame_stack: in
     return jnp.concatenate(list(frames[jnp.maximum(window, start)]), axis=-1)
 
 
-class FrameReplay:
-    """``capacity`` steps over ``num_envs`` envs; samples ``batch_size`` n-step transitions."""
+class SequenceReplay:
+    """``capacity`` steps over ``num_envs`` envs (``flashbax``'s trajectory buffer, time-major per
+    env); samples ``batch_size`` sequences of ``length`` consecutive steps of one env."""
 
-    def __init__(self, num_envs: int, capacity: int, batch_size: int, frame_stack: int, n_step: int,
-                 gamma: float) -> None:
-        self.frame_stack, self.n_step, self.gamma = frame_stack, n_step, gamma
-        self.sequence_length = frame_stack - 1 + n_step + 1
-        if capacity // num_envs < self.sequence_length:
-            raise ValueError(f"replay capacity {capacity} is too small for {num_envs} envs × "
-                             f"{self.sequence_length}-step sequences")
+    def __init__(self, num_envs: int, capacity: int, batch_size: int, length: int) -> None:
+        if capacity // num_envs < length:
+            raise ValueError(f"replay capacity {capacity} is too small for {num_envs} envs × {length}-step sequences")
+        self.sequence_length = length
         self.buffer = flashbax.make_trajectory_buffer(
-            add_batch_size=num_envs, sample_batch_size=batch_size, sample_sequence_length=self.sequence_length,
-            period=1, min_length_time_axis=self.sequence_length, max_length_time_axis=capacity // num_envs)
+            add_batch_size=num_envs, sample_batch_size=batch_size, sample_sequence_length=length,
+            period=1, min_length_time_axis=length, max_length_time_axis=capacity // num_envs)
 
     def init(self, example: Step):
         """An empty buffer for steps shaped like ``example`` (one env's step, no leading axis)."""
@@ -73,9 +72,22 @@ class FrameReplay:
     def can_sample(self, state) -> jax.Array:
         return self.buffer.can_sample(state)
 
+    def sample_sequences(self, state, key: jax.Array) -> Step:
+        """``batch_size`` sequences: every leaf shaped (B, length, …)."""
+        return self.buffer.sample(state, key).experience
+
+
+class FrameReplay(SequenceReplay):
+    """A :class:`SequenceReplay` of single frames that samples ``batch_size`` n-step transitions
+    with their frame stacks rebuilt."""
+
+    def __init__(self, num_envs: int, capacity: int, batch_size: int, frame_stack: int, n_step: int,
+                 gamma: float) -> None:
+        self.frame_stack, self.n_step, self.gamma = frame_stack, n_step, gamma
+        super().__init__(num_envs, capacity, batch_size, frame_stack - 1 + n_step + 1)
+
     def sample(self, state, key: jax.Array) -> NStepBatch:
-        sequences = self.buffer.sample(state, key).experience
-        return jax.vmap(self.transition)(sequences)
+        return jax.vmap(self.transition)(self.sample_sequences(state, key))
 
     def transition(self, steps: Step) -> NStepBatch:
         """The n-step transition from the observation at position ``frame_stack − 1`` of one sequence."""

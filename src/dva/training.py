@@ -19,7 +19,7 @@ import orbax.checkpoint as ocp
 from tqdm import tqdm
 
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
-from dva.algorithms.base import Agent
+from dva.algorithms.base import Agent, RecurrentAgent
 from dva.evaluation import evaluate_policy
 from dva.tasks import make_task
 
@@ -72,8 +72,13 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
 
 
 def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
-    """:func:`~dva.evaluation.evaluate_policy` with the agent's deterministic policy."""
-    return evaluate_policy(agent.env, lambda observation, _key: agent.act(policy, observation), key, record)
+    """:func:`~dva.evaluation.evaluate_policy` with the agent's deterministic policy (its memory
+    carried from step to step where it is a :class:`~dva.algorithms.base.RecurrentAgent`)."""
+    if isinstance(agent, RecurrentAgent):
+        return evaluate_policy(agent.env, lambda observation, memory, _key: agent.act_recurrent(policy, observation, memory),
+                               key, record, agent.initial_memory(agent.env.num_envs))
+    return evaluate_policy(agent.env, lambda observation, memory, _key: (agent.act(policy, observation), memory),
+                           key, record)
 
 
 def evaluate_run(run_dir: Path, seed: int = 0) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:

@@ -3,7 +3,8 @@
 D.Va, SHAC, DPG on state and visual SHAC are one trainer (:mod:`dva.algorithms.shac`) with
 different observations and gradients; DrQ-v2 and CURL (:mod:`dva.algorithms.drqv2`,
 :mod:`dva.algorithms.curl`) are the off-policy pixel baselines on a shared collection loop
-(:mod:`dva.algorithms.off_policy`). :func:`build_agent` puts an algorithm together with its task
+(:mod:`dva.algorithms.off_policy`); DreamerV3 (:mod:`dva.algorithms.dreamerv3`) learns a world
+model and acts from its recurrent state. :func:`build_agent` puts an algorithm together with its task
 and pixel wrapper; :func:`make_config` with its preset (:mod:`dva.configs`).
 """
 
@@ -16,9 +17,10 @@ from typing import Any, Literal, get_args
 from dva.algorithms.base import Agent
 from dva.algorithms.curl import CURL, CURLConfig
 from dva.algorithms.dagger import DAggerConfig, make_dagger, train_teacher_if_missing
+from dva.algorithms.dreamerv3 import DreamerV3, DreamerV3Config
 from dva.algorithms.drqv2 import DrQV2, DrQV2Config
 from dva.algorithms.shac import SHAC, SHACConfig
-from dva.configs import PRESETS, curl_preset, dagger_preset, drqv2_preset, shac_preset
+from dva.configs import PRESETS, curl_preset, dagger_preset, dreamerv3_preset, drqv2_preset, shac_preset
 from dva.envs import PixelObservations, Renderer
 from dva.tasks import check_task_name, make_task
 
@@ -47,7 +49,7 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
-AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl", "dagger"]
+AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl", "dagger", "dreamerv3"]
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
                      shac_preset, dict(observation="pixels", gradient="decoupled"), _shac_renderer),
@@ -64,6 +66,8 @@ ALGORITHMS: dict[str, Algorithm] = {
                       curl_preset, {}, lambda config: "warp"),
     "dagger": Algorithm("state-to-visual DAgger: a pixel student imitates a SHAC teacher on the state",
                         DAggerConfig, make_dagger, dagger_preset, {}, lambda config: "warp", train_teacher_if_missing),
+    "dreamerv3": Algorithm("DreamerV3: a world model from pixels (RSSM), actor and critic in imagination",
+                           DreamerV3Config, DreamerV3, dreamerv3_preset, {}, lambda config: "warp"),
 }
 assert set(get_args(AlgoName)) == set(ALGORITHMS)
 

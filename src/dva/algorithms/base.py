@@ -3,7 +3,7 @@ serves them all: budget, progress bar, logs, evaluation, checkpoints, resume, di
 
 from __future__ import annotations
 
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import jax
 
@@ -49,3 +49,16 @@ class Agent(Protocol[State]):
 
     def abort_reason(self, metrics: dict[str, Any]) -> str:
         """Why an unhealthy iteration stops training, naming the value and the limit."""
+
+
+@runtime_checkable
+class RecurrentAgent(Protocol):
+    """An agent whose policy remembers (DreamerV3's latent state): evaluation carries its memory
+    from step to step, starting each episode from :meth:`initial_memory`. Its :meth:`Agent.act`
+    is the action from a fresh memory."""
+
+    def initial_memory(self, num_envs: int) -> Any:
+        """The memory (a pytree with a leading env axis) at the start of an episode."""
+
+    def act_recurrent(self, policy: Any, observation: Observation, memory: Any) -> tuple[jax.Array, Any]:
+        """The deterministic action for a batch of observations, and the updated memory."""

@@ -18,8 +18,6 @@ import typing
 from pathlib import Path
 from typing import Literal
 
-from dva.algorithms import ALGORITHMS
-
 FigureName = Literal["fig4", "fig6", "fig7", "ablation-value", "ablation-frames"]
 FIGURES: tuple[str, ...] = typing.get_args(FigureName)
 COMPLETE = "complete.json"  # written into a run directory when its budget is spent
@@ -42,7 +40,7 @@ class Setting:
 def figure_settings(figure: str, tasks: list[str]) -> list[Setting]:
     """The settings a figure compares on each of ``tasks``.
 
-    fig4: D.Va against the model-free and model-based visual baselines that exist here; fig6:
+    fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3) visual baselines; fig6:
     D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs visual SHAC;
     ablation-value: D.Va with and without its critic; ablation-frames: D.Va with 1–6 frames.
     """
@@ -55,7 +53,7 @@ def figure_settings(figure: str, tasks: list[str]) -> list[Setting]:
     else:
         algos = {"fig4": ("dva", "drqv2", "curl", "dreamerv3"), "fig6": ("dva", "dagger"),
                  "fig7": ("dva", "shac-pixels")}[figure]
-        per_task = [(algo, algo, ()) for algo in algos if algo in ALGORITHMS]
+        per_task = [(algo, algo, ()) for algo in algos]
     return [Setting(label, task, algo, overrides) for task in tasks for label, algo, overrides in per_task]
 
 

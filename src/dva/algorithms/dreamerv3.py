@@ -1,0 +1,437 @@
+"""DreamerV3 (Hafner et al. 2023) from pixels — the paper's model-based visual baseline (spec §3).
+
+One iteration collects ``collect_steps`` steps of every env with the actor acting on the RSSM's
+posterior state (stored as single frames in a sequence replay), then makes ``updates`` updates,
+each on ``batch_size`` replayed sequences of ``batch_length`` steps (``train_ratio`` replayed
+steps per policy step):
+
+* **world model**: the RSSM observes the sequence (its state reset at episode starts); loss =
+  image reconstruction (squared error summed over pixels) + two-hot symlog reward + continuation
+  (Bernoulli) + 0.5 · dynamics KL + 0.1 · representation KL, each KL with 1 nat free;
+* **imagination**: from every posterior state, ``horizon`` steps of the prior with actions
+  sampled from the actor, the model frozen;
+* **critic**: two-hot symlog regression on the λ-returns of the imagined rewards and
+  continuations, plus a regulariser towards its EMA (``critic_ema``);
+* **actor**: REINFORCE on the advantage divided by ``max(1, S)``, S the EMA of the returns'
+  5th–95th percentile range, plus an entropy bonus.
+
+Simplified against the reference implementation (documented, the method kept): the RSSM's
+initial state is zeros rather than learned; a GRU with LayerNorm on its input rather than the
+block-GRU; Adam with global-norm clipping rather than adaptive gradient clipping; the reward and
+continuation of a step are predicted from the state it leads to, taken from the prior where the
+auto-reset hid the last frame of an episode; replayed sequences start from a fresh state.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from dva.algorithms.dreamer_math import (kl_balance_losses, lambda_returns, normalized_advantage, symlog_bins,
+                                         twohot, twohot_decode, unimix_logits, update_return_scale)
+from dva.envs import Observation, PixelObservations
+from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP
+from dva.replay import SequenceReplay, Step
+from dva.tasks import EnvState
+
+
+@dataclasses.dataclass(frozen=True)
+class DreamerV3Config:
+    """Hyperparameters (spec §3's DreamerV3 row; the network sizes of the reference's "S" model)."""
+
+    num_envs: int = 4
+    image_size: int = 64
+    frame_stack: int = 1  # the RSSM remembers: one frame per observation
+    action_repeat: int = 2
+    batch_size: int = 16
+    batch_length: int = 64
+    train_ratio: float = 512.0  # replayed steps per policy step (over all envs)
+    replay_size: int = 1_000_000  # policy steps kept, over all envs
+    seed_steps: int = 4000  # env steps of uniform random actions before the first update
+    deter: int = 512
+    stoch: int = 32
+    classes: int = 32
+    units: int = 512
+    layers: int = 2  # hidden layers of the reward, continuation, actor and critic heads
+    cnn_depth: int = 32
+    unimix: float = 0.01
+    free_nats: float = 1.0
+    dynamics_scale: float = 0.5
+    representation_scale: float = 0.1
+    model_lr: float = 1e-4
+    model_eps: float = 1e-8
+    model_clip: float = 1000.0
+    horizon: int = 15  # imagined steps
+    gamma: float = 0.997
+    lam: float = 0.95
+    actor_lr: float = 3e-5
+    critic_lr: float = 3e-5
+    actor_critic_eps: float = 1e-5
+    actor_critic_clip: float = 100.0
+    entropy: float = 3e-4
+    critic_ema: float = 0.98  # slow critic ← critic_ema · slow + (1 − critic_ema) · critic, every update
+    return_decay: float = 0.99
+    min_std: float = 0.1
+    max_std: float = 1.0
+    num_bins: int = 255
+    iterations: int = 100_000  # the run's length when no budget is given
+
+    def __post_init__(self) -> None:
+        for name in ("num_envs", "action_repeat", "batch_size", "batch_length", "horizon"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
+        if self.frame_stack != 1:
+            raise ValueError(f"frame_stack = {self.frame_stack} is not allowed for DreamerV3; use 1 (the RSSM remembers)")
+        if self.image_size % 16:
+            raise ValueError(f"image_size = {self.image_size} is not allowed for DreamerV3's 4 stride-2 "
+                             "convolutions; use a multiple of 16 (e.g. 48, 64)")
+        if self.train_ratio <= 0:
+            raise ValueError(f"train_ratio = {self.train_ratio} is not allowed; use a number > 0")
+
+    @property
+    def replayed_per_update(self) -> int:
+        return self.batch_size * self.batch_length
+
+    @property
+    def collect_steps(self) -> int:
+        """Steps of every env per iteration: one update's replayed steps ÷ (ratio × envs), ≥ 1."""
+        return max(1, round(self.replayed_per_update / (self.train_ratio * self.num_envs)))
+
+    @property
+    def updates(self) -> int:
+        """Updates per iteration: the ones that keep ``train_ratio`` (≥ 1)."""
+        return max(1, round(self.train_ratio * self.num_envs * self.collect_steps / self.replayed_per_update))
+
+
+class Latent(struct.PyTreeNode):
+    """The RSSM's state per env, with what the next observation step needs (the policy's memory)."""
+
+    deter: jax.Array  # (N, deter)
+    stoch: jax.Array  # (N, stoch, classes) one-hot
+    action: jax.Array  # (N, A): the action taken from this state
+    restart: jax.Array  # (N,) bool: the next observation starts afresh (episode start)
+
+
+class DreamerState(struct.PyTreeNode):
+    """Everything one iteration reads and writes."""
+
+    params: dict  # {"model": {"encoder", "decoder", "rssm", "reward", "cont"}, "actor", "critic"}
+    slow_critic: dict
+    opt_states: dict  # {"model", "actor", "critic"}
+    return_scale: jax.Array
+    env: EnvState
+    first: jax.Array  # (N,) bool: the current observation starts an episode
+    latent: Latent
+    replay: object
+    episode_return: jax.Array
+    key: jax.Array
+    iteration: jax.Array
+
+
+def sample_onehot(logits: jax.Array, key: jax.Array) -> jax.Array:
+    """A one-hot sample of each categorical, with the straight-through gradient of its probabilities."""
+    probs = jax.nn.softmax(logits, -1)
+    sample = jax.nn.one_hot(jax.random.categorical(key, logits), logits.shape[-1])
+    return sample + probs - jax.lax.stop_gradient(probs)
+
+
+def features(deter: jax.Array, stoch: jax.Array) -> jax.Array:
+    """What the heads read: ``[h, flatten(z)]``."""
+    return jnp.concatenate([deter, stoch.reshape(stoch.shape[:-2] + (-1,))], axis=-1)
+
+
+def categorical_cross_entropy(logits: jax.Array, target: jax.Array) -> jax.Array:
+    return -jnp.sum(target * jax.nn.log_softmax(logits, -1), axis=-1)
+
+
+class DreamerV3:
+    """The DreamerV3 agent (an :class:`~dva.algorithms.base.Agent` and
+    :class:`~dva.algorithms.base.RecurrentAgent`); see the module docstring."""
+
+    metric_names = ("model_loss", "image_loss", "reward_loss", "kl", "actor_loss", "critic_loss",
+                    "return_scale", "exploration")
+
+    def __init__(self, env: PixelObservations, config: DreamerV3Config) -> None:
+        if not env.has_pixels or env.num_envs != config.num_envs or env.frame_stack != 1:
+            raise ValueError(f"DreamerV3 needs an env wrapper that renders {config.num_envs} envs, one frame each")
+        self.env, self.task, self.config = env, env.task, config
+        cfg, action_dim = config, env.task.action_dim
+        self.encoder = ConvEncoder(cfg.cnn_depth)
+        self.decoder = ConvDecoder(cfg.cnn_depth, cfg.image_size)
+        self.rssm = RSSM(cfg.deter, cfg.stoch, cfg.classes, cfg.units)
+        self.reward_head = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
+        self.cont_head = DreamerMLP(cfg.units, cfg.layers, 1)
+        self.actor = DreamerMLP(cfg.units, cfg.layers, 2 * action_dim)
+        self.critic = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
+        self.bins = symlog_bins(cfg.num_bins)
+        self.optimizers = {
+            "model": optax.chain(optax.clip_by_global_norm(cfg.model_clip), optax.adam(cfg.model_lr, eps=cfg.model_eps)),
+            "actor": optax.chain(optax.clip_by_global_norm(cfg.actor_critic_clip),
+                                 optax.adam(cfg.actor_lr, eps=cfg.actor_critic_eps)),
+            "critic": optax.chain(optax.clip_by_global_norm(cfg.actor_critic_clip),
+                                  optax.adam(cfg.critic_lr, eps=cfg.actor_critic_eps))}
+        self.replay = SequenceReplay(cfg.num_envs, cfg.replay_size, cfg.batch_size, cfg.batch_length)
+
+    @property
+    def env_steps_per_iteration(self) -> int:
+        return self.config.num_envs * self.config.action_repeat * self.config.collect_steps
+
+    @property
+    def default_iterations(self) -> int:
+        return self.config.iterations
+
+    @property
+    def seed_rounds(self) -> int:
+        """Steps of every env with uniform random actions before learning: ``seed_steps`` env steps
+        and at least one sampled sequence per env."""
+        per_round = self.config.num_envs * self.config.action_repeat
+        return max(-(-self.config.seed_steps // per_round), self.config.batch_length)
+
+    # ---- the world model ----------------------------------------------------------------------
+    def prior(self, model: dict, deter: jax.Array) -> jax.Array:
+        return unimix_logits(self.rssm.apply(model["rssm"], deter, method=RSSM.prior), self.config.unimix)
+
+    def posterior(self, model: dict, deter: jax.Array, embedding: jax.Array) -> jax.Array:
+        return unimix_logits(self.rssm.apply(model["rssm"], deter, embedding, method=RSSM.posterior),
+                             self.config.unimix)
+
+    def transition(self, model: dict, deter: jax.Array, stoch: jax.Array, action: jax.Array) -> jax.Array:
+        return self.rssm.apply(model["rssm"], deter, stoch, action, method=RSSM.transition)
+
+    def observe(self, model: dict, latent: Latent, embedding: jax.Array, restart: jax.Array) -> tuple:
+        """One observation step: ``h`` from the previous state and action (zeros where ``restart``)
+        and the posterior logits of ``z`` given the image's ``embedding``. Returns ``(h_arrived, h,
+        posterior_logits)``, ``h_arrived`` the transition's ``h`` before any restart."""
+        arrived = self.transition(model, latent.deter, latent.stoch, latent.action)
+        deter = jnp.where(restart[:, None], 0.0, arrived)
+        return arrived, deter, self.posterior(model, deter, embedding)
+
+    def world_model_loss(self, model: dict, steps: Step, key: jax.Array):
+        """The world-model loss on replayed sequences (B, T, …); also returns the posterior states
+        (imagination starts there) and the loss terms."""
+        cfg = self.config
+        batch, length = steps.first.shape
+        embedding = self.encoder.apply(model["encoder"], steps.frame)
+        restart = steps.first.at[:, 0].set(True)  # every sequence starts from a fresh state
+        prev_action = jnp.concatenate([jnp.zeros_like(steps.action[:, :1]), steps.action[:, :-1]], axis=1)
+
+        def step(carry, inputs):
+            embedding_t, restart_t, action_t, key_t = inputs
+            posterior_key, prior_key = jax.random.split(key_t)
+            latent = Latent(*carry, action=action_t, restart=restart_t)
+            arrived, deter, posterior = self.observe(model, latent, embedding_t, restart_t)
+            stoch = sample_onehot(posterior, posterior_key)
+            # the state the previous action led to: this one within an episode, the prior's guess
+            # where the auto-reset replaced that step's frame by the next episode's first
+            arrived_stoch = jnp.where(restart_t[:, None, None],
+                                      sample_onehot(self.prior(model, arrived), prior_key), stoch)
+            outputs = (deter, stoch, self.prior(model, deter), posterior, features(arrived, arrived_stoch))
+            return (deter, stoch), outputs
+
+        time_major = lambda x: jnp.swapaxes(x, 0, 1)
+        initial = (jnp.zeros((batch, cfg.deter)), jnp.zeros((batch, cfg.stoch, cfg.classes)))
+        inputs = (time_major(embedding), time_major(restart), time_major(prev_action),
+                  jax.random.split(key, length))
+        _, (deter, stoch, prior, posterior, arrived) = jax.lax.scan(step, initial, inputs)
+        deter, stoch, prior, posterior, arrived = map(time_major, (deter, stoch, prior, posterior, arrived))
+
+        target = steps.frame.astype(jnp.float32) / 255.0 - 0.5
+        image_loss = jnp.sum((self.decoder.apply(model["decoder"], features(deter, stoch)) - target) ** 2, (-3, -2, -1))
+        dynamics, representation = kl_balance_losses(posterior, prior, cfg.free_nats)
+        # the reward and continuation of step t are read from the state it led to (position t + 1)
+        reward_logits = self.reward_head.apply(model["reward"], arrived[:, 1:])
+        reward_loss = categorical_cross_entropy(reward_logits, twohot(steps.reward[:, :-1], self.bins))
+        cont_logit = self.cont_head.apply(model["cont"], arrived[:, 1:])[..., 0]
+        cont_loss = optax.sigmoid_binary_cross_entropy(cont_logit, 1.0 - steps.terminated[:, :-1])
+        loss = (jnp.mean(image_loss + cfg.dynamics_scale * dynamics + cfg.representation_scale * representation)
+                + jnp.mean(reward_loss + cont_loss))
+        terms = {"image_loss": jnp.mean(image_loss), "reward_loss": jnp.mean(reward_loss), "kl": jnp.mean(dynamics)}
+        return loss, ((deter, stoch), terms)
+
+    # ---- acting -------------------------------------------------------------------------------
+    def action_distribution(self, actor: dict, feature: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """The actor's Gaussian: mean ``tanh(·)`` in (−1, 1), std in [min_std, max_std]."""
+        cfg = self.config
+        mean, raw_std = jnp.split(self.actor.apply(actor, feature), 2, axis=-1)
+        return jnp.tanh(mean), cfg.min_std + (cfg.max_std - cfg.min_std) * jax.nn.sigmoid(raw_std + 2.0)
+
+    def initial_memory(self, num_envs: int) -> Latent:
+        cfg = self.config
+        return Latent(deter=jnp.zeros((num_envs, cfg.deter)), stoch=jnp.zeros((num_envs, cfg.stoch, cfg.classes)),
+                      action=jnp.zeros((num_envs, self.task.action_dim)), restart=jnp.ones(num_envs, bool))
+
+    def step_latent(self, model: dict, latent: Latent, pixels: jax.Array, key: jax.Array | None) -> Latent:
+        """The state after seeing ``pixels`` (one frame per env): a posterior sample, or its mode
+        without a ``key``."""
+        _, deter, posterior = self.observe(model, latent, self.encoder.apply(model["encoder"], pixels), latent.restart)
+        if key is None:
+            stoch = jax.nn.one_hot(jnp.argmax(posterior, -1), self.config.classes)
+        else:
+            stoch = sample_onehot(posterior, key)
+        return latent.replace(deter=deter, stoch=stoch)
+
+    def act_recurrent(self, policy: dict, observation: Observation, memory: Latent) -> tuple[jax.Array, Latent]:
+        """The actor's mean action on the posterior's mode; the memory moves on by one step."""
+        latent = self.step_latent(policy["model"], memory, observation["pixels"], None)
+        action, _ = self.action_distribution(policy["actor"], features(latent.deter, latent.stoch))
+        return action, latent.replace(action=action, restart=jnp.zeros_like(latent.restart))
+
+    def act(self, policy: dict, observation: Observation) -> jax.Array:
+        """The action from a fresh memory (as at an episode's first step)."""
+        return self.act_recurrent(policy, observation, self.initial_memory(len(observation["pixels"])))[0]
+
+    def policy(self, state: DreamerState) -> dict:
+        """The encoder and RSSM (the posterior) and the actor."""
+        model = state.params["model"]
+        return {"model": {"encoder": model["encoder"], "rssm": model["rssm"]}, "actor": state.params["actor"]}
+
+    # ---- behaviour learning -------------------------------------------------------------------
+    def imagine(self, model: dict, actor: dict, deter: jax.Array, stoch: jax.Array, key: jax.Array):
+        """``horizon`` prior steps from each start, actions sampled from the actor. Returns the
+        features of states 0…H (H + 1, M, F) and the sampled actions (H, M, A), without gradient."""
+
+        def step(carry, key_t):
+            deter, stoch = carry
+            action_key, stoch_key = jax.random.split(key_t)
+            feature = features(deter, stoch)
+            mean, std = self.action_distribution(actor, feature)
+            action = mean + std * jax.random.normal(action_key, mean.shape)
+            deter = self.transition(model, deter, stoch, jnp.clip(action, -1.0, 1.0))
+            stoch = sample_onehot(self.prior(model, deter), stoch_key)
+            return (deter, stoch), (feature, action)
+
+        (deter, stoch), (feats, actions) = jax.lax.scan(step, (deter, stoch), jax.random.split(key, self.config.horizon))
+        feats = jnp.concatenate([feats, features(deter, stoch)[None]])
+        return jax.lax.stop_gradient(feats), jax.lax.stop_gradient(actions)
+
+    def behaviour_update(self, params: dict, slow_critic: dict, opt_states: dict, return_scale: jax.Array,
+                         starts: tuple[jax.Array, jax.Array], key: jax.Array):
+        """Actor and critic updates on trajectories imagined from ``starts`` (posterior states)."""
+        cfg = self.config
+        model = params["model"]
+        deter, stoch = (jax.lax.stop_gradient(x.reshape((-1,) + x.shape[2:])) for x in starts)
+        feats, actions = self.imagine(model, params["actor"], deter, stoch, key)
+        reward = twohot_decode(self.reward_head.apply(model["reward"], feats[1:]), self.bins)
+        cont = jax.nn.sigmoid(self.cont_head.apply(model["cont"], feats[1:])[..., 0])
+        value = twohot_decode(self.critic.apply(params["critic"], feats), self.bins)
+        returns = lambda_returns(reward, value, cont, cfg.gamma, cfg.lam)  # (H, M)
+        weight = jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0)  # reached with prob.
+        return_scale = update_return_scale(return_scale, returns, cfg.return_decay)
+        advantage = jax.lax.stop_gradient(normalized_advantage(returns, value[:-1], return_scale))
+
+        def actor_loss(actor):
+            mean, std = self.action_distribution(actor, feats[:-1])
+            log_prob = jnp.sum(-0.5 * ((actions - mean) / std) ** 2 - jnp.log(std) - 0.5 * jnp.log(2 * jnp.pi), -1)
+            entropy = jnp.sum(jnp.log(std) + 0.5 * jnp.log(2 * jnp.pi * jnp.e), -1)
+            return -jnp.mean(weight * (advantage * log_prob + cfg.entropy * entropy)), jnp.mean(std)
+
+        slow_value = twohot_decode(self.critic.apply(slow_critic, feats[:-1]), self.bins)
+
+        def critic_loss(critic):
+            logits = self.critic.apply(critic, feats[:-1])
+            return jnp.mean(weight * (categorical_cross_entropy(logits, twohot(returns, self.bins))
+                                      + categorical_cross_entropy(logits, twohot(slow_value, self.bins))))
+
+        (a_loss, mean_std), actor_grads = jax.value_and_grad(actor_loss, has_aux=True)(params["actor"])
+        c_loss, critic_grads = jax.value_and_grad(critic_loss)(params["critic"])
+        new = {}
+        for name, grads in (("actor", actor_grads), ("critic", critic_grads)):
+            updates, opt_states[name] = self.optimizers[name].update(grads, opt_states[name], params[name])
+            new[name] = optax.apply_updates(params[name], updates)
+        slow_critic = optax.incremental_update(new["critic"], slow_critic, 1.0 - cfg.critic_ema)
+        metrics = {"actor_loss": a_loss, "critic_loss": c_loss, "return_scale": return_scale, "exploration": mean_std}
+        return {**params, **new}, slow_critic, opt_states, return_scale, metrics
+
+    def update(self, state: DreamerState, key: jax.Array) -> tuple[DreamerState, dict]:
+        """One world-model update on sampled sequences, then one actor-critic update in imagination."""
+        sample_key, model_key, imagine_key = jax.random.split(key, 3)
+        steps = self.replay.sample_sequences(state.replay, sample_key)
+        params, opt_states = state.params, dict(state.opt_states)
+        (model_loss, (starts, terms)), grads = jax.value_and_grad(self.world_model_loss, has_aux=True)(
+            params["model"], steps, model_key)
+        updates, opt_states["model"] = self.optimizers["model"].update(grads, opt_states["model"], params["model"])
+        params = {**params, "model": optax.apply_updates(params["model"], updates)}
+        params, slow_critic, opt_states, return_scale, metrics = self.behaviour_update(
+            params, state.slow_critic, opt_states, state.return_scale, starts, imagine_key)
+        state = state.replace(params=params, slow_critic=slow_critic, opt_states=opt_states, return_scale=return_scale)
+        return state, {"model_loss": model_loss, **terms, **metrics}
+
+    # ---- the loop -----------------------------------------------------------------------------
+    def collect(self, state: DreamerState, action: jax.Array, latent: Latent) -> tuple[DreamerState, jax.Array]:
+        """One step of every env with ``action`` into the replay; the returns of the episodes that
+        just ended (0 elsewhere)."""
+        env = self.env.step(state.env, action)
+        replay = self.replay.add(state.replay, Step(frame=state.env.pixels, first=state.first, action=action,
+                                                    reward=env.reward, terminated=env.terminated,
+                                                    truncated=env.truncated))
+        episode_return = state.episode_return + env.reward
+        state = state.replace(env=env, first=env.done, replay=replay, latent=latent.replace(action=action, restart=env.done),
+                              episode_return=jnp.where(env.done, 0.0, episode_return))
+        return state, jnp.where(env.done, episode_return, 0.0)
+
+    def init(self, key: jax.Array) -> DreamerState:
+        """Fresh networks and envs, and a replay filled with ``seed_rounds`` uniform random steps."""
+        cfg, action_dim = self.config, self.task.action_dim
+        env_key, seed_key, key, *net_keys = jax.random.split(key, 10)
+        env = self.env.reset(env_key)
+        latent = self.initial_memory(cfg.num_envs)
+        embedding = self.encoder.init(net_keys[0], env.pixels[:1])
+        feature = features(latent.deter[:1], latent.stoch[:1])
+        model = {"encoder": embedding,
+                 "decoder": self.decoder.init(net_keys[1], feature),
+                 "rssm": self.rssm.init(net_keys[2], latent.deter[:1], latent.stoch[:1], latent.action[:1],
+                                        self.encoder.apply(embedding, env.pixels[:1])),
+                 "reward": self.reward_head.init(net_keys[3], feature),
+                 "cont": self.cont_head.init(net_keys[4], feature)}
+        params = {"model": model, "actor": self.actor.init(net_keys[5], feature),
+                  "critic": self.critic.init(net_keys[6], feature)}
+        example = Step(frame=env.pixels[0], first=jnp.ones((), bool), action=jnp.zeros(action_dim),
+                       reward=jnp.zeros(()), terminated=jnp.zeros((), bool), truncated=jnp.zeros((), bool))
+        state = DreamerState(params=params, slow_critic=params["critic"],
+                             opt_states={name: self.optimizers[name].init(params[name]) for name in self.optimizers},
+                             return_scale=jnp.zeros(()), env=env, first=jnp.ones(cfg.num_envs, bool), latent=latent,
+                             replay=self.replay.init(example), episode_return=jnp.zeros(cfg.num_envs), key=key,
+                             iteration=jnp.zeros((), jnp.int32))
+
+        def seed_round(state, round_key):
+            uniform = jax.random.uniform(round_key, (cfg.num_envs, action_dim), minval=-1.0, maxval=1.0)
+            return self.collect(state, uniform, state.latent)[0], None
+
+        state = jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
+        return state.replace(latent=latent)  # the actor starts from a fresh memory
+
+    @property
+    def prior_cost(self) -> tuple[float, int]:
+        """The seed phase's env steps, taken in :meth:`init` (its time is in the run's clock)."""
+        return 0.0, self.seed_rounds * self.config.num_envs * self.config.action_repeat
+
+    def iteration(self, state: DreamerState) -> tuple[DreamerState, dict[str, jax.Array]]:
+        """``collect_steps`` steps of every env with the actor, then ``updates`` updates."""
+        key, collect_key, update_key = jax.random.split(state.key, 3)
+
+        def collect_step(state, step_key):
+            latent_key, action_key = jax.random.split(step_key)
+            latent = self.step_latent(state.params["model"], state.latent, state.env.pixels, latent_key)
+            mean, std = self.action_distribution(state.params["actor"], features(latent.deter, latent.stoch))
+            action = jnp.clip(mean + std * jax.random.normal(action_key, mean.shape), -1.0, 1.0)
+            state, finished = self.collect(state, action, latent)
+            return state, (finished, state.first)
+
+        state, (finished, done) = jax.lax.scan(collect_step, state,
+                                               jax.random.split(collect_key, self.config.collect_steps))
+        metrics = []
+        for update_key in jax.random.split(update_key, self.config.updates):  # unrolled: convolutions in a
+            state, step_metrics = self.update(state, update_key)             # loop are slow on CPU
+            metrics.append(step_metrics)
+        metrics = {name: jnp.mean(jnp.stack([m[name] for m in metrics])) for name in metrics[0]}
+        metrics.update(healthy=jnp.all(jnp.array([jnp.isfinite(value) for value in metrics.values()])),
+                       finished_return_sum=finished.sum(), finished_episodes=done.sum())
+        return state.replace(key=key, iteration=state.iteration + 1), metrics
+
+    def abort_reason(self, metrics: dict) -> str:
+        losses = ", ".join(f"{name} {float(metrics[name]):.3g}" for name in self.metric_names)
+        return f"a NaN or infinite loss ({losses})"

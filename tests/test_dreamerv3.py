@@ -1,0 +1,99 @@
+"""DreamerV3 through the training loop (a tiny model on Cart-pole balance): checkpoint and resume
+with its replay and recurrent state, a world model whose reconstruction improves, the policy's
+memory (reset at episode starts), and the train-ratio arithmetic. Its numerical pieces are
+tested in ``test_dreamer_math.py``; learning to balance is a slow test (``test_learning.py``)."""
+
+from __future__ import annotations
+
+import csv
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dva.algorithms import make_config
+from dva.training import load_run, train
+
+# 2 envs × 8 steps per sequence = one sampled batch per update: collect 1 step, update once.
+TINY = dict(num_envs=2, image_size=16, batch_size=4, batch_length=8, train_ratio=16.0, deter=32, units=32, stoch=4,
+            classes=4, cnn_depth=4, num_bins=31, horizon=5, replay_size=200, seed_steps=8, model_lr=1e-3)
+
+
+def rows(run_dir) -> list[dict]:
+    with (run_dir / "progress.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def dreamer_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("dreamerv3") / "run"
+    train("cartpole_balance", "dreamerv3", preset="cpu", iterations=10, run_dir=run_dir, eval_every=10,
+          checkpoint_every=10, **TINY)
+    train("cartpole_balance", iterations=10, run_dir=run_dir, resume=True, eval_every=10, checkpoint_every=10)
+    return run_dir
+
+
+def test_train_ratio_sets_steps_and_updates_per_iteration():
+    paper = make_config("cartpole_balance", "dreamerv3", "paper")
+    # 16 × 64 replayed steps per update, 512 per policy step of 4 envs: 2 updates per step.
+    assert (paper.collect_steps, paper.updates) == (1, 2)
+    cpu = make_config("cartpole_balance", "dreamerv3", "cpu")
+    # 16 × 32 per update at ratio 64 over 4 envs: one update per 2 steps.
+    assert (cpu.collect_steps, cpu.updates) == (2, 1)
+    for config in (paper, cpu):
+        replayed = config.updates * config.batch_size * config.batch_length
+        assert replayed / (config.num_envs * config.collect_steps) == config.train_ratio
+
+
+def test_bad_dreamerv3_settings_name_the_value():
+    with pytest.raises(ValueError, match="image_size = 50 .* multiple of 16"):
+        make_config("cartpole_balance", "dreamerv3", "cpu", image_size=50)
+    with pytest.raises(ValueError, match="frame_stack = 3 .* use 1"):
+        make_config("cartpole_balance", "dreamerv3", "cpu", frame_stack=3)
+
+
+def test_dreamerv3_trains_resumes_and_evaluates_through_the_loop(dreamer_run):
+    log = rows(dreamer_run)
+    assert [int(r["iteration"]) for r in log] == list(range(21))
+    # seed phase: 8 steps of 2 envs (one sequence each) × action repeat 2 = 32 env steps; then 4 per iteration
+    assert [int(r["env_steps"]) for r in log] == [32 + 4 * i for i in range(21)]
+    evaluations = [float(r["eval_return"]) for r in log if r["eval_return"] != ""]
+    assert len(evaluations) == 3 and all(np.isfinite(evaluations))
+    _, agent, state = load_run(dreamer_run)
+    assert int(state.iteration) == 20 and int(state.replay.current_index) == 8 + 20
+    assert all(np.isfinite(float(r[name])) for r in log[1:] for name in agent.metric_names)
+
+
+def test_world_model_reconstruction_improves(dreamer_run):
+    image_loss = [float(r["image_loss"]) for r in rows(dreamer_run)[1:]]
+    assert np.mean(image_loss[-3:]) < 0.7 * np.mean(image_loss[:3])
+
+
+def test_policy_memory_carries_the_past_and_forgets_it_at_a_restart(dreamer_run):
+    _, agent, state = load_run(dreamer_run)
+    policy, observation = agent.policy(state), agent.env.observe(state.env)
+    act = jax.jit(agent.act_recurrent)
+    fresh = agent.initial_memory(agent.config.num_envs)
+    first_action, memory = act(policy, observation, fresh)
+    np.testing.assert_allclose(first_action, jax.jit(agent.act)(policy, observation), atol=1e-6)
+    assert first_action.shape == (2, 1) and np.all(np.abs(np.asarray(first_action)) <= 1.0)
+    # the same image seen again, now after a step: a different latent state, a different action
+    second_action, memory = act(policy, observation, memory)
+    assert np.abs(np.asarray(second_action - first_action)).max() > 1e-5
+    # a restart forgets everything before it
+    restarted, _ = act(policy, observation, memory.replace(restart=jnp.ones(2, bool)))
+    np.testing.assert_allclose(restarted, first_action, atol=1e-6)
+
+
+def test_replayed_sequences_restart_the_latent_at_episode_starts(dreamer_run):
+    _, agent, state = load_run(dreamer_run)
+    steps = agent.replay.sample_sequences(state.replay, jax.random.PRNGKey(0))
+    steps = steps.replace(first=jnp.zeros_like(steps.first).at[:, 3].set(True))
+    loss, ((deter, stoch), terms) = jax.jit(agent.world_model_loss)(state.params["model"], steps, jax.random.PRNGKey(1))
+    deter = np.asarray(deter)
+    assert np.isfinite(float(loss)) and deter.shape == (4, 8, 32) and stoch.shape == (4, 8, 4, 4)
+    # h is zeros at the sequence's start and at the episode start inside it, carried elsewhere
+    assert np.all(deter[:, [0, 3]] == 0.0)
+    assert np.all(np.abs(deter[:, [1, 2, 4, 5]]).max(axis=-1) > 0.0)
+    assert np.allclose(np.asarray(stoch).sum(-1), 1.0)  # one-hot categoricals
