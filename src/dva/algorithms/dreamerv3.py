@@ -33,6 +33,7 @@ from flax import struct
 
 from dva.algorithms.dreamer_math import (kl_balance_losses, lambda_returns, normalized_advantage, symlog_bins,
                                          twohot, twohot_decode, unimix_logits, update_return_scale)
+from dva.algorithms.off_policy import collect_into_replay
 from dva.envs import Observation, PixelObservations
 from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP
 from dva.replay import SequenceReplay, Step
@@ -361,18 +362,6 @@ class DreamerV3:
         return state, {"model_loss": model_loss, **terms, **metrics}
 
     # ---- the loop -----------------------------------------------------------------------------
-    def collect(self, state: DreamerState, action: jax.Array, latent: Latent) -> tuple[DreamerState, jax.Array]:
-        """One step of every env with ``action`` into the replay; the returns of the episodes that
-        just ended (0 elsewhere)."""
-        env = self.env.step(state.env, action)
-        replay = self.replay.add(state.replay, Step(frame=state.env.pixels, first=state.first, action=action,
-                                                    reward=env.reward, terminated=env.terminated,
-                                                    truncated=env.truncated))
-        episode_return = state.episode_return + env.reward
-        state = state.replace(env=env, first=env.done, replay=replay, latent=latent.replace(action=action, restart=env.done),
-                              episode_return=jnp.where(env.done, 0.0, episode_return))
-        return state, jnp.where(env.done, episode_return, 0.0)
-
     def init(self, key: jax.Array) -> DreamerState:
         """Fresh networks and envs, and a replay filled with ``seed_rounds`` uniform random steps."""
         cfg, action_dim = self.config, self.task.action_dim
@@ -399,7 +388,7 @@ class DreamerV3:
 
         def seed_round(state, round_key):
             uniform = jax.random.uniform(round_key, (cfg.num_envs, action_dim), minval=-1.0, maxval=1.0)
-            return self.collect(state, uniform, state.latent)[0], None
+            return collect_into_replay(self.env, self.replay, state, uniform)[0], None
 
         state = jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
         return state.replace(latent=latent)  # the actor starts from a fresh memory
@@ -418,7 +407,8 @@ class DreamerV3:
             latent = self.step_latent(state.params["model"], state.latent, state.env.pixels, latent_key)
             mean, std = self.action_distribution(state.params["actor"], features(latent.deter, latent.stoch))
             action = jnp.clip(mean + std * jax.random.normal(action_key, mean.shape), -1.0, 1.0)
-            state, finished = self.collect(state, action, latent)
+            state, finished = collect_into_replay(self.env, self.replay, state, action)
+            state = state.replace(latent=latent.replace(action=action, restart=state.first))
             return state, (finished, state.first)
 
         state, (finished, done) = jax.lax.scan(collect_step, state,

@@ -19,7 +19,7 @@ from flax import struct
 
 from dva.envs import PixelObservations
 from dva.networks import PixelEncoder
-from dva.replay import FrameReplay, NStepBatch, Step
+from dva.replay import FrameReplay, NStepBatch, SequenceReplay, Step
 from dva.tasks import EnvState
 
 
@@ -59,6 +59,22 @@ class OffPolicyState(struct.PyTreeNode):
     episode_return: jax.Array  # (N,)
     key: jax.Array
     iteration: jax.Array
+
+
+def collect_into_replay(env: PixelObservations, replay: SequenceReplay, state, action: jax.Array,
+                        reward_scale: float = 1.0):
+    """One step of every env with ``action``, stored in ``replay`` (the newest frame of the
+    observation the action was taken in, the reward × ``reward_scale``). ``state`` is any agent
+    state with ``env``, ``first``, ``replay`` and ``episode_return`` fields; returns it updated and
+    the returns of the episodes that just ended (0 elsewhere; unscaled)."""
+    next_env = env.step(state.env, action)
+    replay_state = replay.add(state.replay, Step(frame=state.env.pixels[..., -3:], first=state.first, action=action,
+                                                 reward=reward_scale * next_env.reward,
+                                                 terminated=next_env.terminated, truncated=next_env.truncated))
+    episode_return = state.episode_return + next_env.reward
+    state = state.replace(env=next_env, first=next_env.done, replay=replay_state,
+                          episode_return=jnp.where(next_env.done, 0.0, episode_return))
+    return state, jnp.where(next_env.done, episode_return, 0.0)
 
 
 class OffPolicyAgent(abc.ABC):
@@ -158,17 +174,8 @@ class OffPolicyAgent(abc.ABC):
         return jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
 
     def collect(self, state: OffPolicyState, action: jax.Array) -> tuple[OffPolicyState, jax.Array]:
-        """One step of every env with ``action``, into the replay; also returns the returns of the
-        episodes that just ended (0 elsewhere)."""
-        env = self.env.step(state.env, action)
-        replay = self.replay.add(state.replay, Step(frame=state.env.pixels[..., -3:], first=state.first, action=action,
-                                                    reward=self.config.reward_scale * env.reward,
-                                                    terminated=env.terminated,
-                                                    truncated=env.truncated))
-        episode_return = state.episode_return + env.reward
-        state = state.replace(env=env, first=env.done, replay=replay,
-                              episode_return=jnp.where(env.done, 0.0, episode_return))
-        return state, jnp.where(env.done, episode_return, 0.0)
+        """:func:`collect_into_replay` with this agent's env, replay and reward scale."""
+        return collect_into_replay(self.env, self.replay, state, action, self.config.reward_scale)
 
     def iteration(self, state: OffPolicyState) -> tuple[OffPolicyState, dict[str, jax.Array]]:
         """One exploring step of every env into the replay, then ``updates_per_iteration`` updates."""
