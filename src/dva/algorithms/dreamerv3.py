@@ -192,6 +192,11 @@ class DreamerV3:
         per_round = self.config.num_envs * self.config.action_repeat
         return max(-(-self.config.seed_steps // per_round), self.config.batch_length)
 
+    @property
+    def prior_cost(self) -> tuple[float, int]:
+        """The seed phase's env steps, taken in :meth:`init` (its time is in the run's clock)."""
+        return 0.0, self.seed_rounds * self.config.num_envs * self.config.action_repeat
+
     # ---- the world model ----------------------------------------------------------------------
     def prior(self, model: dict, deter: jax.Array) -> jax.Array:
         return unimix_logits(self.rssm.apply(model["rssm"], deter, method=RSSM.prior), self.config.unimix)
@@ -392,11 +397,6 @@ class DreamerV3:
 
         state = jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
         return state.replace(latent=latent)  # the actor starts from a fresh memory
-
-    @property
-    def prior_cost(self) -> tuple[float, int]:
-        """The seed phase's env steps, taken in :meth:`init` (its time is in the run's clock)."""
-        return 0.0, self.seed_rounds * self.config.num_envs * self.config.action_repeat
 
     def iteration(self, state: DreamerState) -> tuple[DreamerState, dict[str, jax.Array]]:
         """``collect_steps`` steps of every env with the actor, then ``updates`` updates."""
