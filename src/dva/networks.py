@@ -48,6 +48,12 @@ def _conv_backward(stride, residuals, grad_out):
 conv_valid.defvjp(_conv_forward, _conv_backward)
 
 
+def scale_pixels(pixels: jax.Array) -> jax.Array:
+    """uint8 pixels as the networks see them: ``x/255 − 0.5`` in [−0.5, 0.5] (also DreamerV3's
+    reconstruction target)."""
+    return pixels.astype(jnp.float32) / 255.0 - 0.5
+
+
 class Conv(nn.Module):
     """3×3 VALID convolution + bias using :func:`conv_valid` (same parameters as ``nn.Conv``)."""
 
@@ -73,7 +79,7 @@ class PixelEncoder(nn.Module):
     @nn.compact
     def __call__(self, pixels: jax.Array) -> jax.Array:
         batch_shape = pixels.shape[:-3]
-        x = pixels.reshape((-1,) + pixels.shape[-3:]).astype(jnp.float32) / 255.0 - 0.5
+        x = scale_pixels(pixels.reshape((-1,) + pixels.shape[-3:]))
         for stride in (2, 1, 1, 1):
             x = nn.relu(Conv(self.channels, stride)(x))
         return x.reshape(batch_shape + (-1,))
@@ -228,7 +234,7 @@ class ConvEncoder(nn.Module):
     @nn.compact
     def __call__(self, pixels: jax.Array) -> jax.Array:
         batch_shape = pixels.shape[:-3]
-        x = pixels.reshape((-1,) + pixels.shape[-3:]).astype(jnp.float32) / 255.0 - 0.5
+        x = scale_pixels(pixels.reshape((-1,) + pixels.shape[-3:]))
         for multiplier in (1, 2, 4, 8):
             x = nn.silu(nn.LayerNorm()(nn.Conv(self.depth * multiplier, (4, 4), (2, 2), "SAME")(x)))
         return x.reshape(batch_shape + (-1,))

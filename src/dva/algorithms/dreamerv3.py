@@ -35,7 +35,7 @@ from dva.algorithms.dreamer_math import (kl_balance_losses, lambda_returns, norm
                                          twohot, twohot_decode, unimix_logits, update_return_scale)
 from dva.algorithms.off_policy import collect_into_replay
 from dva.envs import Observation, PixelObservations
-from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP
+from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, scale_pixels
 from dva.replay import SequenceReplay, Step
 from dva.tasks import EnvState
 
@@ -245,7 +245,7 @@ class DreamerV3:
         _, (deter, stoch, prior, posterior, arrived) = jax.lax.scan(step, initial, inputs)
         deter, stoch, prior, posterior, arrived = map(time_major, (deter, stoch, prior, posterior, arrived))
 
-        target = steps.frame.astype(jnp.float32) / 255.0 - 0.5
+        target = scale_pixels(steps.frame)
         image_loss = jnp.sum((self.decoder.apply(model["decoder"], features(deter, stoch)) - target) ** 2, (-3, -2, -1))
         dynamics, representation = kl_balance_losses(posterior, prior, cfg.free_nats)
         # the reward and continuation of step t are read from the state it led to (position t + 1)
