@@ -60,14 +60,15 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
     policy video) → plot → eval."""
     run_dir = tmp_path / "run"
     main(["train", "--task", "cartpole_swingup", "--algo", "dva", "--iterations", "2", "--run-dir", str(run_dir),
-          "--eval-every", "2", "--shac.num-envs", "4", "--shac.horizon", "8", "--shac.image-size", "24"])
+          "--eval-every", "2", "--shac.num-envs", "4", "--shac.horizon", "8", "--shac.image-size", "24",
+          "--video-size", "64"])
     log = (run_dir / "progress.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in log[1:]] == ["0", "1", "2"]  # iteration 0 = untrained policy
     assert "dva on cartpole_swingup: return" in capsys.readouterr().out
     frames = iio.imread(run_dir / "policy.mp4")
-    # 240 steps; per env the 24-px camera view upscaled to 256 next to the 256-px view, 4 envs stacked.
-    assert frames.shape == (240, 4 * 256 + 5 * 2, 2 * 256 + 2 * 2, 3)
-    camera, view = frames[:, 2:258, 2:258], frames[:, 2:258, 258:514]
+    # 240 steps; per env the 24-px camera view upscaled to 64 next to the 64-px view, 4 envs stacked.
+    assert frames.shape == (240, 4 * 64 + 5 * 2, 2 * 64 + 2 * 2, 3)
+    camera, view = frames[:, 2:66, 2:66], frames[:, 2:66, 66:130]
     assert camera.std(axis=0).max() > 10 and view.std(axis=0).max() > 10  # both panels move
     main(["plot", str(run_dir), str(run_dir), "--out", str(tmp_path / "plots")])
     for name in ("eval_return_vs_env_steps.png", "eval_return_vs_wall_time.png"):

@@ -8,11 +8,14 @@ import json
 import shutil
 import time
 
+import functools
+
+import jax
 import numpy as np
 import pytest
 
-from dva.algorithms import ALGORITHMS, config_from_dict, make_config
-from dva.training import TrainingDiverged, checkpoint_manager, train
+from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
+from dva.training import TrainingDiverged, checkpoint_manager, initial_state, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
 
@@ -37,6 +40,16 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert resumed[4]["eval_return"] == "" and resumed[5]["eval_return"] != ""  # runs end on an evaluation
     times = [float(r["wall_time"]) for r in resumed]
     assert times == sorted(times)  # the clock continues across the resume
+
+
+@pytest.mark.parametrize("algo", [algo for algo in ALGORITHMS if algo != "dagger"])  # DAgger's is SHAC's + a replay
+def test_a_run_starts_from_the_types_a_checkpoint_restores(algo):
+    """Orbax restores no weak types (arrays made from Python scalars): a run must not start from
+    any, or its resume compiles the iteration anew (measured: twice, 2 × 68 s for Cart-pole SHAC)."""
+    agent = build_agent("cartpole_balance", algo, make_config("cartpole_balance", algo, "cpu"))
+    shapes = jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(0))
+    assert not [jax.tree_util.keystr(path) for path, leaf in jax.tree_util.tree_flatten_with_path(shapes)[0]
+                if leaf.weak_type]
 
 
 def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):

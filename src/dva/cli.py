@@ -125,6 +125,8 @@ class TrainCommand:
     """Continue the run in --run-dir from its last checkpoint."""
     report: bool = True
     """At the end, write the return plots and a video of the policy into the run directory."""
+    video_size: int = 256
+    """Side of each env's view in that video (next to the actor's camera view)."""
     eval_every: int = 50
     checkpoint_every: int | None = None
     """Checkpoint every this many iterations (default: by time, --checkpoint-minutes)."""
@@ -169,7 +171,7 @@ class TrainCommand:
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()
-            EvalCommand(run_dir, video=run_dir / "policy.mp4").run()
+            EvalCommand(run_dir, video=run_dir / "policy.mp4", video_size=self.video_size).run()
 
 
 @dataclasses.dataclass

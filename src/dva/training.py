@@ -56,6 +56,20 @@ def build(spec: RunSpec) -> Agent:
     return build_agent(spec.task, spec.algo, config_from_dict(spec.algo, spec.config), spec.physics)
 
 
+def initial_state(agent: Agent, key: jax.Array):
+    """``agent.init(key)`` with its weak-typed leaves (arrays made from Python scalars) made strong,
+    as a checkpoint restores them (see :func:`committed`)."""
+    return jax.tree.map(lambda x: jnp.asarray(x, x.dtype) if jax.typeof(x).weak_type else x, agent.init(key))
+
+
+def committed(state):
+    """``state`` committed to the default device. A fresh state (strongly typed: :func:`initial_state`),
+    a restored one and the iteration's outputs then have one signature: the iteration compiles
+    once per run, and a resumed run loads it from the persistent cache (measured before: a resume
+    compiled Cart-pole SHAC's iteration twice more, 65 s and 95 s on one core)."""
+    return jax.device_put(state, jax.devices()[0])
+
+
 def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
     """A finished or running run: its spec, agent and latest checkpointed state."""
     run_dir = Path(run_dir)
@@ -67,7 +81,7 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
     manager = checkpoint_manager(run_dir)
     if manager.latest_step() is None:
         raise ValueError(f"{run_dir} has no checkpoint yet")
-    state = restore(manager, jax.eval_shape(agent.init, jax.random.PRNGKey(spec.seed)))
+    state = restore(manager, jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(spec.seed)))
     return spec, agent, state
 
 
@@ -122,7 +136,7 @@ def restore(manager: ocp.CheckpointManager, like):
     paths_and_leaves, treedef = jax.tree_util.tree_flatten_with_path(like)
     leaves = [saved.get(jax.tree_util.keystr(path), jnp.zeros(leaf.shape, leaf.dtype))  # zero-size leaves
               for path, leaf in paths_and_leaves]
-    return jax.tree_util.tree_unflatten(treedef, leaves)
+    return committed(jax.tree_util.tree_unflatten(treedef, leaves))
 
 
 def csv_fields(agent: Agent) -> list[str]:
@@ -171,10 +185,10 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     manager = checkpoint_manager(run_dir)
     log = ProgressLog(run_dir, csv_fields(agent))
     if resume and manager.latest_step() is not None:
-        state = restore(manager, jax.eval_shape(agent.init, jax.random.PRNGKey(spec.seed)))
+        state = restore(manager, jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(spec.seed)))
         log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
     else:
-        state = jax.jit(agent.init)(jax.random.PRNGKey(spec.seed))
+        state = committed(jax.jit(functools.partial(initial_state, agent))(jax.random.PRNGKey(spec.seed)))
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
     # (DAgger's teacher), so that comparisons count it.
     offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
