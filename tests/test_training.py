@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import shutil
 import time
-
-import functools
 
 import jax
 import numpy as np

@@ -81,8 +81,7 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
     manager = checkpoint_manager(run_dir)
     if manager.latest_step() is None:
         raise ValueError(f"{run_dir} has no checkpoint yet")
-    state = restore(manager, jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(spec.seed)))
-    return spec, agent, state
+    return spec, agent, restore(manager, agent, spec.seed)
 
 
 def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
@@ -124,10 +123,10 @@ def save(manager: ocp.CheckpointManager, state) -> None:
     manager.save(int(state.iteration), args=ocp.args.StandardSave(_saved_leaves(state)))
 
 
-def restore(manager: ocp.CheckpointManager, like):
-    """The latest checkpoint, shaped like ``like`` (arrays or ``jax.ShapeDtypeStruct``s, e.g. from
-    ``jax.eval_shape(agent.init, key)``: no need to run the initialisation); a clear error when it
-    cannot be read."""
+def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int):
+    """The latest checkpoint, shaped like the agent's initial state (from ``jax.eval_shape``: no
+    need to run the initialisation) and committed like it; a clear error when it cannot be read."""
+    like = jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(seed))
     step = manager.latest_step()
     try:
         saved = manager.restore(step, args=ocp.args.StandardRestore(_saved_leaves(like)))
@@ -185,7 +184,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     manager = checkpoint_manager(run_dir)
     log = ProgressLog(run_dir, csv_fields(agent))
     if resume and manager.latest_step() is not None:
-        state = restore(manager, jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(spec.seed)))
+        state = restore(manager, agent, spec.seed)
         log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
     else:
         state = committed(jax.jit(functools.partial(initial_state, agent))(jax.random.PRNGKey(spec.seed)))
