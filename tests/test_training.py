@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
-from dva.training import TrainingDiverged, checkpoint_manager, initial_state, train
+from dva.training import TrainingDiverged, checkpoint_manager, initial_state, load_run, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
 
@@ -39,6 +39,10 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert resumed[4]["eval_return"] == "" and resumed[5]["eval_return"] != ""  # runs end on an evaluation
     times = [float(r["wall_time"]) for r in resumed]
     assert times == sorted(times)  # the clock continues across the resume
+    # A restored state is committed to the device in every leaf (zero-size ones too), as a fresh
+    # one is: one signature for the compiled iteration.
+    _, _, restored = load_run(run_dir)
+    assert all(leaf.committed for leaf in jax.tree.leaves(restored))
 
 
 @pytest.mark.parametrize("algo", [algo for algo in ALGORITHMS if algo != "dagger"])  # DAgger's is SHAC's + a replay
@@ -98,8 +102,6 @@ def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tm
 
 def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
     """DrQ-v2 through the same loop: its replay buffer is part of the checkpointed state."""
-    from dva.training import load_run
-
     run_dir = tmp_path / "run"
     tiny = dict(num_envs=2, image_size=16, batch_size=4, hidden=(8,), feature_dim=8, replay_size=64, seed_steps=4,
                 updates_per_iteration=1)
