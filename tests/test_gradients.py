@@ -69,9 +69,11 @@ def lifted_coordinates(task):
     return qpos, np.full(task.mj_model.nv, 0.1)
 
 
-# Every task with its default physics (penalty contacts), and MuJoCo's soft constraints once: its
+# Every model with its default physics (penalty contacts), and MuJoCo's soft constraints once: its
 # forward is the converged solve, so these finite differences are those of the converged physics.
-CASES = [(name, TASKS[name].physics) for name in TASKS] + [("hopper", "mujoco")]
+# Cart-pole balance is left out: it is the swing-up's model and physics from another start, and
+# this test sets its own start (each case costs minutes of tracing and compiling).
+CASES = [(name, TASKS[name].physics) for name in TASKS if name != "cartpole_balance"] + [("hopper", "mujoco")]
 
 
 @pytest.mark.parametrize("name,physics", CASES)

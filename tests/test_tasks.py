@@ -131,26 +131,31 @@ def test_reset_noise_and_shapes():
     assert not bool(state.done.any())
 
 
-def test_termination_auto_resets_and_keeps_final_observation():
+@pytest.fixture(scope="module")
+def cartpole_step():
+    """Cart-pole's jitted step on 3 envs and a fresh state: one compile shared by the step tests
+    (same shapes and strongly typed inputs in each, so none of them compiles it again)."""
     task = make_task("cartpole_swingup")
-    state = task.reset(jax.random.PRNGKey(0), 2)
+    return task, jax.jit(task.step), task.reset(jax.random.PRNGKey(0), 3)
+
+
+def test_termination_auto_resets_and_keeps_final_observation(cartpole_step):
+    task, step, state = cartpole_step
     data = state.data.replace(qpos=state.data.qpos.at[0, 0].set(2.49), qvel=state.data.qvel.at[0, 0].set(3.0))
-    state = state.replace(data=data)
-    after = jax.jit(task.step)(state, jnp.ones((2, 1)))
-    assert after.terminated.tolist() == [True, False] and not after.truncated.any()
+    after = step(state.replace(data=data), jnp.ones((3, 1)))
+    assert after.terminated.tolist() == [True, False, False] and not after.truncated.any()
     assert float(after.final_obs[0, 0]) >= 2.5  # the state the step reached
     assert abs(float(after.obs[0, 0])) < 1e-6  # a fresh episode: cart at the centre
     assert float(after.data.qpos[0, 1]) == pytest.approx(np.pi, abs=np.pi / 12 + 1e-6)
-    assert after.step_count.tolist() == [0, 1]
+    assert after.step_count.tolist() == [0, 1, 1]
     np.testing.assert_array_equal(after.prev_action[0], [0.0])
     np.testing.assert_allclose(after.final_obs[1], after.obs[1])
 
 
-def test_time_limit_truncates_not_terminates():
-    task = make_task("cartpole_swingup")
-    state = task.reset(jax.random.PRNGKey(0), 3)
+def test_time_limit_truncates_not_terminates(cartpole_step):
+    task, step, state = cartpole_step
     state = state.replace(step_count=jnp.array([task.episode_length - 1, 5, task.episode_length - 1], jnp.int32))
-    after = jax.jit(task.step)(state, jnp.zeros((3, 1)))
+    after = step(state, jnp.zeros((3, 1)))
     assert after.truncated.tolist() == [True, False, True]
     assert not after.terminated.any()
     assert after.step_count.tolist() == [0, 6, 0]
@@ -158,11 +163,12 @@ def test_time_limit_truncates_not_terminates():
     assert not np.allclose(after.final_obs[0], after.obs[0])
 
 
-def test_actions_are_clipped_to_unit_range():
-    task = make_task("cartpole_swingup")
-    state = task.reset(jax.random.PRNGKey(0), 1)
-    step = jax.jit(task.step)
-    np.testing.assert_allclose(step(state, jnp.full((1, 1), 5.0)).data.qpos, step(state, jnp.ones((1, 1))).data.qpos)
+def test_actions_are_clipped_to_unit_range(cartpole_step):
+    _, step, state = cartpole_step
+    same_start = jax.tree.map(lambda x: jnp.broadcast_to(x[:1], x.shape), state.data)  # env 0's state in all 3
+    qpos = step(state.replace(data=same_start), jnp.array([[5.0], [1.0], [0.2]], jnp.float32)).data.qpos
+    np.testing.assert_allclose(qpos[0], qpos[1])  # 5 acts as 1
+    assert not np.allclose(qpos[0], qpos[2])  # and the action does move the cart
 
 
 def test_bad_input_errors_name_the_value():
