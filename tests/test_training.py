@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
-from dva.training import TrainingDiverged, checkpoint_manager, initial_state, load_run, train
+from dva.training import TrainingDiverged, build, checkpoint_manager, compiled, initial_state, load_run, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
 
@@ -41,8 +41,12 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert times == sorted(times)  # the clock continues across the resume
     # A restored state is committed to the device in every leaf (zero-size ones too), as a fresh
     # one is: one signature for the compiled iteration.
-    _, _, restored = load_run(run_dir)
+    spec, agent, restored = load_run(run_dir)
     assert all(leaf.committed for leaf in jax.tree.leaves(restored))
+    # The two runs (and the loaded one) share one agent, and its iteration was compiled once for
+    # both: the restored state has the fresh state's signature.
+    assert agent is build(spec)
+    assert compiled(agent).iteration._cache_size() == 1
 
 
 @pytest.mark.parametrize("algo", [algo for algo in ALGORITHMS if algo != "dagger"])  # DAgger's is SHAC's + a replay
@@ -121,10 +125,12 @@ def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
 
 
 def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
-    teacher = train("cartpole_balance", "shac", preset="cpu", iterations=2, run_dir=tmp_path / "teacher",
+    # The teacher's config is the earlier tests' (SMALL on swing-up): its agent and compiled
+    # iteration are reused from them (training._agent), as a resume would.
+    teacher = train("cartpole_swingup", "shac", preset="cpu", iterations=2, run_dir=tmp_path / "teacher",
                     eval_every=None, **SMALL)
     teacher_end = rows(teacher)[-1]
-    student = train("cartpole_balance", "dagger", preset="cpu", iterations=2, run_dir=tmp_path / "student",
+    student = train("cartpole_swingup", "dagger", preset="cpu", iterations=2, run_dir=tmp_path / "student",
                     eval_every=2, teacher=str(teacher), num_envs=4, horizon=8, image_size=16, batch_size=16,
                     replay_size=200, updates_per_iteration=1, actor_hidden=(16,), trunk=16)
     log = rows(student)
@@ -132,7 +138,7 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
     assert float(log[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
     assert float(log[-1]["wall_time"]) > float(teacher_end["wall_time"]) and log[-1]["bc_loss"] != ""
     with pytest.raises(ValueError, match="DAgger needs a teacher on the state"):
-        train("cartpole_balance", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
+        train("cartpole_swingup", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
               num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200)
 
     # A teacher trained within the same call (here a stand-in that takes 2 s) is counted once: the
@@ -142,7 +148,7 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
         return dataclasses.replace(config, teacher=str(teacher))
 
     monkeypatch.setitem(ALGORITHMS, "dagger", dataclasses.replace(ALGORITHMS["dagger"], prepare=train_teacher))
-    in_call = train("cartpole_balance", "dagger", preset="cpu", iterations=0, run_dir=tmp_path / "in_call",
+    in_call = train("cartpole_swingup", "dagger", preset="cpu", iterations=0, run_dir=tmp_path / "in_call",
                     eval_every=None, num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200,
                     actor_hidden=(16,), trunk=16)
     assert float(rows(in_call)[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))

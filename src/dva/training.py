@@ -10,7 +10,9 @@ import dataclasses
 import functools
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -52,8 +54,33 @@ def read_progress(run_dir) -> list[dict]:
 
 
 def build(spec: RunSpec) -> Agent:
-    """The agent of a run (its renderer, which must stay alive, lives in ``agent.env``)."""
-    return build_agent(spec.task, spec.algo, config_from_dict(spec.algo, spec.config), spec.physics)
+    """The agent of a run (its renderer, which must stay alive, lives in ``agent.env``); one per
+    task, algorithm, config and physics in a process (see :func:`_agent`)."""
+    return _agent(spec.task, spec.algo, config_from_dict(spec.algo, spec.config), spec.physics)
+
+
+@functools.lru_cache(maxsize=4)
+def _agent(task: str, algo: str, config, physics: str | None) -> Agent:
+    """Agents are stateless, so the runs of one process that share a configuration — a resume, the
+    next seed of ``dva compare``, ``dva eval`` after ``dva train`` — share one agent, its renderer and,
+    through :func:`compiled`, its traced and compiled functions (tracing the reverse pass through
+    MJX alone takes tens of seconds on a CPU). The seed is not part of the config."""
+    return build_agent(task, algo, config, physics)
+
+
+class Compiled(NamedTuple):
+    """An agent's jitted functions: initial state, iteration (its state donated), evaluation."""
+
+    init: Callable
+    iteration: Callable
+    evaluate: Callable
+
+
+@functools.lru_cache(maxsize=4)
+def compiled(agent: Agent) -> Compiled:
+    """``agent``'s jitted functions, traced once per agent."""
+    return Compiled(jax.jit(functools.partial(initial_state, agent)), jax.jit(agent.iteration, donate_argnums=0),
+                    jax.jit(functools.partial(evaluate_agent, agent)))
 
 
 def initial_state(agent: Agent, key: jax.Array):
@@ -126,7 +153,7 @@ def save(manager: ocp.CheckpointManager, state) -> None:
 def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int):
     """The latest checkpoint, shaped like the agent's initial state (from ``jax.eval_shape``: no
     need to run the initialisation) and committed like it; a clear error when it cannot be read."""
-    like = jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(seed))
+    like = jax.eval_shape(compiled(agent).init, jax.random.PRNGKey(seed))
     step = manager.latest_step()
     try:
         saved = manager.restore(step, args=ocp.args.StandardRestore(_saved_leaves(like)))
@@ -187,15 +214,14 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
         state = restore(manager, agent, spec.seed)
         log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
     else:
-        state = committed(jax.jit(functools.partial(initial_state, agent))(jax.random.PRNGKey(spec.seed)))
+        state = committed(compiled(agent).init(jax.random.PRNGKey(spec.seed)))
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
     # (DAgger's teacher), so that comparisons count it.
     offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
     # A fresh run's budget includes that prior cost; a resumed run's ``minutes`` are minutes more.
     spent_before = 0.0 if log.rows else agent.prior_cost[0]
 
-    step_fn = jax.jit(agent.iteration, donate_argnums=0)
-    evaluate = jax.jit(functools.partial(evaluate_agent, agent))
+    _, step_fn, evaluate = compiled(agent)
 
     def eval_return(state) -> float:
         """Mean deterministic return, one full episode per env, with a key per iteration."""
