@@ -19,27 +19,45 @@ def _conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
 
+def _seen_by_tap(x: jax.Array, i: int, j: int, stride: int, out: tuple[int, int]) -> jax.Array:
+    """The input pixels kernel entry (i, j) multiplies, one per output pixel (N, *out, C)."""
+    height, width = out
+    return x[:, i: i + stride * (height - 1) + 1: stride, j: j + stride * (width - 1) + 1: stride]
+
+
+def _patches(x: jax.Array, size: tuple[int, int], stride: int, out: tuple[int, int]) -> jax.Array:
+    """im2col: each output pixel's receptive field as one row, taps in (i, j, channel) order."""
+    return jnp.concatenate([_seen_by_tap(x, i, j, stride, out) for i in range(size[0]) for j in range(size[1])], axis=-1)
+
+
+def _conv_as_matmul(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    kh, kw, channels, features = kernel.shape
+    out = ((x.shape[1] - kh) // stride + 1, (x.shape[2] - kw) // stride + 1)
+    return _patches(x, (kh, kw), stride, out) @ kernel.reshape(kh * kw * channels, features)
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
 def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    """A VALID, NHWC × HWIO convolution whose kernel gradient is computed as one matmul per
-    kernel tap — on CPU several times faster than XLA's convolution weight-gradient (spec §6)."""
-    return _conv(x, kernel, stride)
+    """A VALID, NHWC × HWIO convolution whose forward is one matmul over image patches and whose
+    kernel gradient is one matmul per kernel tap: on CPU both run several times faster than XLA's
+    convolution and its kernel gradient (spec §6; ``benchmarks/RESULTS.md``, D.Va iteration time)."""
+    return _conv_as_matmul(x, kernel, stride)
 
 
 def _conv_forward(x, kernel, stride):
-    return _conv(x, kernel, stride), (x, kernel)
+    return _conv_as_matmul(x, kernel, stride), (x, kernel)
 
 
 def _conv_backward(stride, residuals, grad_out):
     x, kernel = residuals
-    height, width = grad_out.shape[1:3]
     flat_grad = grad_out.reshape(-1, grad_out.shape[-1])
 
     def tap(i: int, j: int) -> jax.Array:  # the inputs kernel entry (i, j) saw, against the output grads
-        seen = x[:, i: i + stride * (height - 1) + 1: stride, j: j + stride * (width - 1) + 1: stride]
-        return seen.reshape(-1, x.shape[-1]).T @ flat_grad
+        return _seen_by_tap(x, i, j, stride, grad_out.shape[1:3]).reshape(-1, x.shape[-1]).T @ flat_grad
 
     kh, kw = kernel.shape[:2]
+    # One matmul per tap, not one over the patch matrix: that matrix (9× the input) costs more to
+    # build again than it saves here, measured in the D.Va actor backward.
     grad_kernel = jnp.stack([jnp.stack([tap(i, j) for j in range(kw)]) for i in range(kh)])
     _, input_vjp = jax.vjp(lambda x: _conv(x, kernel, stride), x)  # XLA's transposed conv is fast
     return input_vjp(grad_out)[0], grad_kernel
