@@ -31,20 +31,28 @@ def setup():
     return shac, train, noise
 
 
+@pytest.fixture(scope="module")
+def decoupled(setup):
+    """The decoupled rollout's loss L, what it took (observations, actions) and the gradients of L
+    w.r.t. the actor parameters and the open-loop actions (an offset on a_t reaches L only through
+    the dynamics, later actions held fixed): one compile shared by the identities below."""
+    shac, train, noise = setup
+    loss_of = lambda params, offsets: shac.rollout(params, train, noise, offsets)
+    (loss, aux), (grad_params, grad_actions) = jax.jit(jax.value_and_grad(loss_of, argnums=(0, 1), has_aux=True))(
+        train.actor_params, jnp.zeros_like(noise))
+    return loss, aux[-1], grad_params, grad_actions
+
+
 def flat(tree) -> np.ndarray:
     return np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])
 
 
 @pytest.mark.parametrize("beta", [0.1, 1.0, 10.0])
-def test_theorem1_decoupled_gradient_is_behaviour_cloning_gradient(setup, beta):
+def test_theorem1_decoupled_gradient_is_behaviour_cloning_gradient(setup, decoupled, beta):
     shac, train, noise = setup
-    objective = lambda params, offset: -shac.rollout(params, train, noise, offset)[0]  # J = −L
-    zeros = jnp.zeros_like(noise)
-    grad_theta = jax.grad(objective)(train.actor_params, zeros)  # decoupled trajectory gradient
-    # Open-loop gradient ∇_A J: with the observations cut, an offset on a_t reaches J only
-    # through the dynamics, i.e. with later actions held fixed.
-    grad_actions = jax.grad(objective, argnums=1)(train.actor_params, zeros)
-    taken = shac.rollout(train.actor_params, train, noise)[1][-1]
+    _, taken, grad_loss, grad_loss_actions = decoupled
+    grad_theta = jax.tree.map(jnp.negative, grad_loss)  # the decoupled trajectory gradient of J = −L
+    grad_actions = -grad_loss_actions  # the open-loop gradient ∇_A J
     observations, actions = taken["observations"], taken["actions"]
     improved = actions + beta * grad_actions  # ā = a + β ∇_a J
 
@@ -57,15 +65,13 @@ def test_theorem1_decoupled_gradient_is_behaviour_cloning_gradient(setup, beta):
     assert np.abs(flat(grad_theta)).max() > 0
 
 
-def test_full_gradient_is_decoupled_plus_control_regularisation(setup):
+def test_full_gradient_is_decoupled_plus_control_regularisation(setup, decoupled):
     """APG = DPG + B, with B = Σ_t ∂L/∂a_t · ∂a_t/∂o_t · do_t/dθ computed on its own (state obs)."""
     _, train, noise = setup
-    full, decoupled = agent("full"), agent("decoupled")
+    _, _, dpg, action_grad = decoupled  # ∂L/∂a_t with the observations cut: the open-loop action gradient
+    full = agent("full")
     params = train.actor_params
     apg = jax.grad(lambda p: full.rollout(p, train, noise)[0])(params)
-    dpg = jax.grad(lambda p: decoupled.rollout(p, train, noise)[0])(params)
-    # ∂L/∂a_t with the observations cut: the open-loop action gradient.
-    action_grad = jax.grad(lambda w: decoupled.rollout(params, train, noise, w)[0])(jnp.zeros_like(noise))
     observations_of = lambda p: full.rollout(p, train, noise)[1][-1]["observations"]
     observations, observation_vjp = jax.vjp(observations_of, params)  # closed-loop do_t/dθ
     _, actor_vjp = jax.vjp(lambda o: full.pre_tanh_action(params, o, None), observations)  # ∂a_t/∂o_t
@@ -104,7 +110,7 @@ def test_per_env_gradient_clipping_rescales_only_large_cotangents():
     np.testing.assert_allclose(grad_v, [[12 * 2 / 13], [0.0]], rtol=1e-6)
 
 
-def test_state_gradient_clipping_in_the_rollout(setup):
+def test_state_gradient_clipping_in_the_rollout(setup, decoupled):
     """A bound far above the real cotangents changes nothing; a tiny one shrinks the gradient
     that reaches earlier actions, and the loss (the forward) is the same either way."""
     shac, train, noise = setup
@@ -114,7 +120,7 @@ def test_state_gradient_clipping_in_the_rollout(setup):
         return jax.value_and_grad(lambda w: clipped.rollout(train.actor_params, train, noise, w)[0])(
             jnp.zeros_like(noise))
 
-    exact_loss, exact = action_grad(None)
+    exact_loss, _, _, exact = decoupled  # state_grad_clip None: exact
     loose_loss, loose = action_grad(1e9)
     tight_loss, tight = action_grad(1e-6)
     assert float(loose_loss) == float(exact_loss) == float(tight_loss)
@@ -140,21 +146,26 @@ def test_td_lambda_targets_hand_computed():
     np.testing.assert_allclose(targets[:, 1], expected_env1, rtol=1e-6)
 
 
-def test_batched_actor_gradient_equals_reverse_mode_through_the_rollout(setup):
-    """The decoupled fast path (physics backward for ∂L/∂a, then one batched actor VJP) gives
-    the same gradient as differentiating the rollout directly."""
+@pytest.fixture(scope="module")
+def batched(setup):
+    """The decoupled fast path's loss and gradient (physics backward for ∂L/∂a, then one batched actor VJP)."""
     shac, train, noise = setup
-    loss, _, fast = shac.actor_gradient(train.actor_params, train, noise)
-    direct_loss, direct = jax.value_and_grad(lambda p: shac.rollout(p, train, noise)[0])(train.actor_params)
+    loss, _, grads = jax.jit(shac.actor_gradient)(train.actor_params, train, noise)
+    return loss, grads
+
+
+def test_batched_actor_gradient_equals_reverse_mode_through_the_rollout(batched, decoupled):
+    """The fast path gives the same gradient as differentiating the rollout directly."""
+    (loss, fast), (direct_loss, _, direct, _) = batched, decoupled
     assert float(loss) == pytest.approx(float(direct_loss), rel=1e-6)
     np.testing.assert_allclose(flat(fast), flat(direct), rtol=1e-4, atol=1e-6 * np.abs(flat(direct)).max())
 
 
-def test_chunked_actor_backward_equals_the_batched_one(setup):
+def test_chunked_actor_backward_equals_the_batched_one(setup, batched):
     """Recomputing the actor two steps at a time (less memory) gives the same gradient. (The
     reshape into chunks is the same for pixel observations; one compile here keeps the suite short.)"""
     shac, train, noise = setup
-    _, _, batched = shac.actor_gradient(train.actor_params, train, noise)
+    _, batched = batched
     chunked_agent = SHAC(shac.env, dataclasses.replace(shac.config, actor_backward_chunk=2))
     _, _, chunked = jax.jit(chunked_agent.actor_gradient)(train.actor_params, train, noise)
     assert np.abs(flat(batched)).max() > 0
@@ -163,17 +174,17 @@ def test_chunked_actor_backward_equals_the_batched_one(setup):
         dataclasses.replace(shac.config, actor_backward_chunk=4)
 
 
-def test_without_the_critic_the_loss_is_the_windows_discounted_reward(setup):
+def test_without_the_critic_the_loss_is_the_windows_discounted_reward(setup, decoupled):
     """The value ablation: nothing is bootstrapped at the window's end (no episode ends within
     these 6 steps of Cart-pole), so the loss is −Σ_t γ^t r_t averaged over envs and steps."""
     shac, train, noise = setup
+    with_critic = decoupled[0]
     ablated = SHAC(shac.env, dataclasses.replace(shac.config, use_critic=False))
     loss, aux = jax.jit(ablated.rollout)(train.actor_params, train, noise)
     reward = np.asarray(aux[2].reward)
     assert not np.asarray(aux[2].boundary)[:-1].any()
     discounts = shac.config.gamma ** np.arange(HORIZON)[:, None]
     assert float(loss) == pytest.approx(-(discounts * reward).sum() / (NUM_ENVS * HORIZON), rel=1e-5)
-    with_critic, _ = jax.jit(shac.rollout)(train.actor_params, train, noise)
     assert float(with_critic) != pytest.approx(float(loss), rel=1e-5)  # the critic's bootstrap is there
 
 
