@@ -8,6 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from dva import training
 from dva.cli import main
 
 
@@ -76,6 +77,8 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
         assert (run_dir / name).exists()
     main(["eval", str(run_dir), "--seed", "3"])
     assert "return" in capsys.readouterr().out and not (tmp_path / "policy.mp4").exists()
+    # dva eval reused the recorded evaluation the training report compiled (tens of seconds on a CPU)
+    assert training.compiled(training.load_run(run_dir)[1]).evaluate_recorded._cache_size() == 1
 
 
 def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):

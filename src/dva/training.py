@@ -69,18 +69,21 @@ def _agent(task: str, algo: str, config, physics: str | None) -> Agent:
 
 
 class Compiled(NamedTuple):
-    """An agent's jitted functions: initial state, iteration (its state donated), evaluation."""
+    """An agent's jitted functions: initial state, iteration (its state donated), evaluation, and
+    evaluation that also records each step's ``qpos`` and camera frame (for ``dva eval`` and videos)."""
 
     init: Callable
     iteration: Callable
     evaluate: Callable
+    evaluate_recorded: Callable
 
 
 @functools.lru_cache(maxsize=4)
 def compiled(agent: Agent) -> Compiled:
     """``agent``'s jitted functions, traced once per agent."""
     return Compiled(jax.jit(functools.partial(initial_state, agent)), jax.jit(agent.iteration, donate_argnums=0),
-                    jax.jit(functools.partial(evaluate_agent, agent)))
+                    jax.jit(functools.partial(evaluate_agent, agent)),
+                    jax.jit(functools.partial(evaluate_agent, agent, record=True)))
 
 
 def initial_state(agent: Agent, key: jax.Array):
@@ -128,8 +131,7 @@ def evaluate_run(run_dir: Path, seed: int = 0) -> tuple[RunSpec, np.ndarray, np.
     newest camera frame the actor saw (T, N, H, W, 3; empty for state observations).
     """
     spec, agent, state = load_run(run_dir)
-    evaluate = jax.jit(functools.partial(evaluate_agent, agent, record=True))
-    returns, qpos, camera = jax.device_get(evaluate(agent.policy(state), jax.random.PRNGKey(seed)))
+    returns, qpos, camera = jax.device_get(compiled(agent).evaluate_recorded(agent.policy(state), jax.random.PRNGKey(seed)))
     return spec, returns, qpos, camera
 
 
@@ -221,7 +223,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     # A fresh run's budget includes that prior cost; a resumed run's ``minutes`` are minutes more.
     spent_before = 0.0 if log.rows else agent.prior_cost[0]
 
-    _, step_fn, evaluate = compiled(agent)
+    _, step_fn, evaluate, _ = compiled(agent)
 
     def eval_return(state) -> float:
         """Mean deterministic return, one full episode per env, with a key per iteration."""
