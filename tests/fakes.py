@@ -26,7 +26,9 @@ class StripeRenderer:
 
 def small_off_policy_agent(algo: str, iterations: int, **overrides):
     """A tiny ``algo`` (drqv2 or curl) on cartpole_balance with 4 envs and the stripe renderer,
-    trained for ``iterations``: returns the agent, its state and the last metrics."""
+    trained for ``iterations``: returns the agent, its state before and after the last iteration
+    and that iteration's metrics (the last update is then checked on what the iteration did,
+    without compiling the update on its own)."""
     config = make_config("cartpole_balance", algo, "cpu", num_envs=4, image_size=16, batch_size=8, hidden=(16, 16),
                          feature_dim=8, replay_size=400, **overrides)
     env = PixelObservations(make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack,
@@ -35,5 +37,6 @@ def small_off_policy_agent(algo: str, iterations: int, **overrides):
     state = jax.jit(agent.init)(jax.random.PRNGKey(0))
     iteration = jax.jit(agent.iteration)
     for _ in range(iterations):
+        previous = state
         state, metrics = iteration(state)
-    return agent, state, jax.device_get(metrics)
+    return agent, previous, state, jax.device_get(metrics)

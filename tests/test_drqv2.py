@@ -94,17 +94,16 @@ def test_replay_samples_only_written_steps_and_never_crosses_an_episode():
 
 @pytest.fixture(scope="module")
 def small_agent():
-    # 6 × 4 envs × 2 repeats = 48 env steps: past the seed phase.
-    return small_off_policy_agent("drqv2", 6, seed_steps=32, updates_per_iteration=2)
+    # 6 × 4 envs × 2 repeats = 48 env steps: past the seed phase; one update per iteration, so the
+    # last iteration's learner is one update from the one before.
+    return small_off_policy_agent("drqv2", 6, seed_steps=32, updates_per_iteration=1, reward_scale=0.5)
 
 
 def test_drqv2_learns_after_the_seed_phase_and_moves_the_target_by_tau(small_agent):
-    agent, state, metrics = small_agent
+    agent, previous, state, metrics = small_agent
     assert np.isfinite(metrics["critic_loss"]) and np.isfinite(metrics["actor_loss"]) and metrics["healthy"]
     assert metrics["exploration"] < 1.0  # the std schedule has started
-    batch = agent.replay.sample(state.replay, jax.random.PRNGKey(1))
-    learner = state.learner
-    updated, _ = jax.jit(agent.update)(learner, batch, jnp.asarray(48), jax.random.PRNGKey(2))
+    learner, updated = previous.learner, state.learner
     tau = agent.config.target_tau
     expected = jax.tree.map(lambda online, old: tau * online + (1 - tau) * old,
                             updated.params["critic"], learner.target_critic)
@@ -115,7 +114,7 @@ def test_drqv2_learns_after_the_seed_phase_and_moves_the_target_by_tau(small_age
 
 
 def test_drqv2_acts_with_the_actors_mean(small_agent):
-    agent, state, _ = small_agent
+    agent, _, state, _ = small_agent
     observation = agent.env.observe(state.env)
     action = agent.act(agent.policy(state), observation)
     assert action.shape == (4, 1) and np.all(np.abs(np.asarray(action)) <= 1.0)
@@ -123,8 +122,8 @@ def test_drqv2_acts_with_the_actors_mean(small_agent):
     np.testing.assert_allclose(action, agent.actor.apply(params["actor"], agent.encoder.apply(params["encoder"], observation["pixels"])))
 
 
-def test_replay_stores_rewards_times_reward_scale():
-    agent, state, _ = small_off_policy_agent("drqv2", 1, seed_steps=8, reward_scale=0.5)
+def test_replay_stores_rewards_times_reward_scale(small_agent):
+    agent, _, state, _ = small_agent  # reward_scale 0.5
     action = jnp.full((4, 1), 0.3)
     after, finished = jax.jit(agent.collect)(state, action)
     stored = after.replay.experience.reward[:, after.replay.current_index - 1]
