@@ -3,8 +3,9 @@ differences of the same forward physics in float64, contact-free and in contact,
 gradients through 32 steps.
 
 Compiling a reverse pass through MJX takes minutes on 2 cores, so each task compiles exactly one
-function: ``value_and_grad`` of a 32-step rollout whose steps past the horizon ``H`` are skipped. The same executable gives the gradient for H = 1, 3 and 32 and, evaluated at
-perturbed inputs, the finite differences.
+function: ``value_and_grad`` of a 32-step rollout whose steps past the horizon ``H`` are
+skipped. The same executable gives the gradient for H = 1, 3 and 32 and, evaluated at perturbed
+inputs, the finite differences.
 """
 
 from __future__ import annotations
