@@ -236,7 +236,7 @@ class CompareCommand:
     after a crash, or with more seeds or minutes, only trains what is missing."""
 
     figure: tyro.conf.Positional[FigureName]
-    """fig4: D.Va vs DrQ-v2, CURL (and DreamerV3 once it exists); fig6: D.Va vs state-to-visual DAgger
+    """fig4: D.Va vs DrQ-v2, CURL and DreamerV3; fig6: D.Va vs state-to-visual DAgger
     (teacher's time included); fig7: D.Va vs visual SHAC; ablation-value: D.Va without its critic;
     ablation-frames: D.Va with 1–6 stacked frames."""
     tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
