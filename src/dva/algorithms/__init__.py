@@ -52,13 +52,14 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
 AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl", "dagger", "dreamerv3"]
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
-                     shac_preset, dict(observation="pixels", gradient="decoupled"), _shac_renderer),
+                     lambda task, preset: shac_preset(task, preset, "pixels"),
+                     dict(observation="pixels", gradient="decoupled"), _shac_renderer),
     "shac": Algorithm("SHAC: actor on the state, full gradient", SHACConfig, SHAC,
                       shac_preset, dict(observation="state", gradient="full"), _shac_renderer),
     "dpg-state": Algorithm("decoupled gradient, actor on the state (paper Fig 13)", SHACConfig, SHAC,
                            shac_preset, dict(observation="state", gradient="decoupled"), _shac_renderer),
     "shac-pixels": Algorithm("visual SHAC: actor on differentiably rendered pixels, full gradient",
-                             SHACConfig, SHAC, lambda task, preset: shac_preset(task, preset, visual_shac=True),
+                             SHACConfig, SHAC, lambda task, preset: shac_preset(task, preset, "differentiable-pixels"),
                              dict(observation="pixels", gradient="full"), _shac_renderer),
     "drqv2": Algorithm("DrQ-v2: DDPG from pixels with random-shift augmentation", DrQV2Config, DrQV2,
                        drqv2_preset, {}, lambda config: "warp"),
