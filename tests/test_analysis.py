@@ -9,7 +9,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from dva.analysis.cost import ratios
+from dva.analysis.cost import measure_costs, ratios, write_cost_report
 from dva.analysis.profile import per_million_steps
 from dva.cli import main
 
@@ -59,6 +59,14 @@ def test_analyze_cost_end_to_end(tmp_path, capsys):
         assert float(row["peak_memory_mb"]) * 2**20 > 8 * 4 * 24 * 24 * 9
     assert "| cartpole_swingup |" in capsys.readouterr().out
     assert iio.imread(tmp_path / "cost" / "cost.png").ndim == 3
+    # --no-timing compiles the same gradients from shapes alone: the same memory, no times.
+    memory_only = measure_costs(["cartpole_swingup"], num_envs=4, horizon=8, image_size=24, chunk=None, timing=False)
+    for row, timed_row in zip(memory_only, costs, strict=True):
+        assert row["peak_memory_mb"] == pytest.approx(float(timed_row["peak_memory_mb"]), rel=1e-6)
+        assert np.isnan(row["backward_s"]) and np.isnan(row["forward_s"])
+    _, markdown = write_cost_report(memory_only, tmp_path / "memory_only", "memory only")
+    assert "| cartpole_swingup | dva |" in markdown
+    assert iio.imread(tmp_path / "memory_only" / "cost.png").ndim == 3
 
 
 @pytest.mark.slow  # ≈ 6 min of compiling on 2 cores

@@ -30,16 +30,19 @@ PAPER_BACKWARD_S = {  # spec §4, Table 1 (RTX 4080): (D.Va, visual SHAC)
     "cartpole_swingup": (0.11, 0.36), "hopper": (0.19, 0.51), "ant": (0.21, 0.58), "humanoid": (0.68, 1.38)}
 
 
-def gradient_cost(agent: SHAC, state: TrainState) -> dict[str, float]:
+def gradient_cost(agent: SHAC, state: TrainState | None, timing: bool = True) -> dict[str, float]:
     """Forward and backward seconds of one actor gradient at ``state``, and its planned peak
-    memory. The times are NaN when that peak would not fit in the memory available now."""
+    memory. The times are NaN when that peak would not fit in the memory available now, or
+    without ``timing`` (then only compiled, from the shapes of a fresh state: ``state`` unused)."""
     cfg = agent.config
     noise = jax.random.normal(jax.random.PRNGKey(1), (cfg.horizon, cfg.num_envs, agent.task.action_dim))
+    if not timing:
+        state = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
     args = (state.actor_params, state, noise)
     gradient = jax.jit(lambda p, s, n: agent.actor_gradient(p, s, n)[2]).lower(*args).compile()
     peak_bytes = planned_memory_bytes(gradient)
     cost = {"forward_s": float("nan"), "backward_s": float("nan"), "peak_memory_mb": peak_bytes / 2**20}
-    if peak_bytes < 0.8 * available_memory_bytes():
+    if timing and peak_bytes < 0.8 * available_memory_bytes():
         forward = jax.jit(lambda p, s, n: agent.rollout(p, s, n)[0])
         cost["forward_s"] = timed(forward, *args, repeats=1)[1]
         cost["backward_s"] = timed(gradient, *args, repeats=1)[1] - cost["forward_s"]
@@ -64,10 +67,10 @@ def available_memory_bytes() -> float:
 
 
 def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image_size: int = 84,
-                  seed: int = 0, chunk: int | None = 4) -> list[dict]:
+                  seed: int = 0, chunk: int | None = 1, timing: bool = True) -> list[dict]:
     """One row per task and variant: D.Va (its actor backward batched over all frames), D.Va with
     ``actor_backward_chunk = chunk`` (unless None) and visual SHAC — same networks, envs, horizon,
-    images."""
+    images. Without ``timing`` only the memory, from compiling (minutes instead of an hour)."""
     variants = [("dva", None)] + ([("dva", chunk)] if chunk is not None else []) + [(COMPARED[1], None)]
     rows = []
     for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
@@ -76,10 +79,10 @@ def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image
             config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size,
                                  **overrides)
             agent = build_agent(task, algo, config)
-            state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
+            state = jax.jit(agent.init)(jax.random.PRNGKey(seed)) if timing else None
             variant = algo if algo_chunk is None else f"{algo}, chunk {algo_chunk}"
             rows.append({"task": task, "algo": algo, "variant": variant, "actor_backward_chunk": algo_chunk or "",
-                         **gradient_cost(agent, state)})
+                         **gradient_cost(agent, state, timing)})
     return rows
 
 
@@ -105,11 +108,15 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     tasks = list(dict.fromkeys(r["task"] for r in rows))
     variants = list(dict.fromkeys(r["variant"] for r in rows))
     by_key = {(r["task"], r["variant"]): r for r in rows}
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), dpi=120)
+    # Memory only (--no-timing): the times are NaN and get no panel.
+    panels = [(key, label) for key, label in (("backward_s", "backward time per iteration (s)"),
+                                              ("peak_memory_mb", "peak memory of the gradient (MB)"))
+              if np.isfinite([r[key] for r in rows]).any()]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.8), dpi=120, squeeze=False)
+    axes = axes[0]
     x = np.arange(len(tasks))
     width = 0.8 / len(variants)
-    for ax, key, label in zip(axes, ("backward_s", "peak_memory_mb"), ("backward time per iteration (s)",
-                                                                        "peak memory of the gradient (MB)")):
+    for ax, (key, label) in zip(axes, panels):
         for i, variant in enumerate(variants):
             values = [by_key[(task, variant)][key] for task in tasks]
             ax.bar(x + (i - (len(variants) - 1) / 2) * width, values, width, label=variant)
