@@ -30,14 +30,12 @@ PAPER_BACKWARD_S = {  # spec §4, Table 1 (RTX 4080): (D.Va, visual SHAC)
     "cartpole_swingup": (0.11, 0.36), "hopper": (0.19, 0.51), "ant": (0.21, 0.58), "humanoid": (0.68, 1.38)}
 
 
-def gradient_cost(agent: SHAC, state: TrainState | None, timing: bool = True) -> dict[str, float]:
+def gradient_cost(agent: SHAC, state: TrainState, timing: bool = True) -> dict[str, float]:
     """Forward and backward seconds of one actor gradient at ``state``, and its planned peak
     memory. The times are NaN when that peak would not fit in the memory available now, or
-    without ``timing`` (then only compiled, from the shapes of a fresh state: ``state`` unused)."""
+    without ``timing`` (then ``state`` may be shapes only: the gradient is only compiled)."""
     cfg = agent.config
     noise = jax.random.normal(jax.random.PRNGKey(1), (cfg.horizon, cfg.num_envs, agent.task.action_dim))
-    if not timing:
-        state = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
     args = (state.actor_params, state, noise)
     gradient = jax.jit(lambda p, s, n: agent.actor_gradient(p, s, n)[2]).lower(*args).compile()
     peak_bytes = planned_memory_bytes(gradient)
@@ -79,7 +77,8 @@ def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image
             config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size,
                                  **overrides)
             agent = build_agent(task, algo, config)
-            state = jax.jit(agent.init)(jax.random.PRNGKey(seed)) if timing else None
+            init = jax.jit(agent.init) if timing else lambda key: jax.eval_shape(agent.init, key)
+            state = init(jax.random.PRNGKey(seed))
             variant = algo if algo_chunk is None else f"{algo}, chunk {algo_chunk}"
             rows.append({"task": task, "algo": algo, "variant": variant, "actor_backward_chunk": algo_chunk or "",
                          **gradient_cost(agent, state, timing)})
