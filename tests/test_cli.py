@@ -23,6 +23,16 @@ def test_tasks_lists_every_task_with_sizes(capsys):
     assert rows["cartpole_swingup"][6] == "none"  # nothing touches the floor
 
 
+def test_help_describes_every_command(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    for command in ("tasks", "render", "train", "eval", "plot", "compare", "analyze"):
+        assert f"• {command}" in out
+    assert "analyses behind the method" in out and "Union" not in out  # not typing.Union's docstring
+
+
 def test_render_writes_grid_and_video(tmp_path):
     main(["render", "--task", "cartpole_swingup", "--num-envs", "4", "--out", str(tmp_path),
           "--steps", "20", "--video-size", "96"])

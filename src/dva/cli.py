@@ -7,7 +7,7 @@ import sys
 import time
 import typing
 from pathlib import Path
-from typing import Annotated, Optional, Union
+from typing import Annotated, Any, Optional, Union
 
 import tyro
 
@@ -378,7 +378,8 @@ ANALYSES = {"gradients": GradientsAnalysis, "gradnorm": GradnormAnalysis, "cost"
             "breakdown": BreakdownAnalysis}
 AnalyzeCommand = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)]
                              for name, cls in ANALYSES.items())]
-"""``dva analyze NAME``: the analyses behind the method, each writing a PNG and a table."""
+# A Union has no docstring of its own: without this, ``dva --help`` would print typing.Union's.
+ANALYZE_HELP = "The analyses behind the method (gradients, gradnorm, cost, breakdown), each writing a PNG and a table."
 
 
 COMMANDS = {
@@ -394,8 +395,11 @@ COMMANDS = {
 
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``dva`` console script."""
-    command = tyro.extras.subcommand_cli_from_dict(
-        {name: Annotated[cls, tyro.conf.arg(name=name)] for name, cls in COMMANDS.items()},
+    # As tyro.extras.subcommand_cli_from_dict, but with the analyze group's description set.
+    command = tyro.cli(
+        Union[tuple(Annotated[Any, tyro.conf.subcommand(name=name, constructor=cls,
+                                                        description=ANALYZE_HELP if name == "analyze" else None)]
+                    for name, cls in COMMANDS.items())],
         args=argv,
         prog="dva",
     )
