@@ -32,8 +32,15 @@ def main() -> None:
     print(f"{args.algo} on {args.task}, preset {args.preset}: {config.num_envs} envs × {config.horizon} steps"
           + (f", {config.image_size}² × {config.frame_stack} frames" if config.observation == "pixels" else ""))
     print(machine_description())
-    rows = [(part, f"{seconds:.3f}", f"{seconds / times['iteration']:.0%}") for part, seconds in times.items()]
+    rows = [(part, f"{seconds:.3f}", f"{seconds / times['iteration']:.0%}") for part, seconds in times.items()
+            if part != "render_with_actor"]
     print(markdown_table(["part", "seconds", "share of iteration"], rows))
+    if "render_with_actor" in times:
+        apart = times["render"] + times["actor_forward"]
+        print(f"\nrendering and the actor forward side by side in one loop (no dependence): "
+              f"{times['render_with_actor']:.3f} s vs {apart:.3f} s one after the other "
+              f"({1 - times['render_with_actor'] / apart:+.0%}): the most that rendering the next frame "
+              f"while the actor runs could save per iteration")
     if config.observation == "pixels":
         images = config.num_envs * config.horizon
         flops = encoder_flops(config.image_size, 3 * config.frame_stack, trunk=config.trunk)

@@ -25,7 +25,8 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     ``actor_backward``: D.Va's actor backward over all h × N observations, from the
     backward passes the rollout kept (0 for 'full').
     ``critic``: TD-λ targets and all critic minibatch steps. ``render``: rendering alone, h
-    batches of N frames (part of the rollout forward). ``iteration``: the whole jitted step.
+    batches of N frames (part of the rollout forward); ``render_with_actor``: see
+    :func:`render_beside_actor`. ``iteration``: the whole jitted step.
     """
     cfg = agent.config
     noise = jax.random.normal(jax.random.PRNGKey(1), (cfg.horizon, cfg.num_envs, agent.task.action_dim))
@@ -54,13 +55,29 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     critic = jax.jit(agent.critic_update)
     times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
     if agent.env.renderer is not None:
-        render = jax.jit(lambda q: jax.lax.map(lambda _: agent.env.renderer(q).sum(dtype=jnp.int32), jnp.arange(cfg.horizon)))
-        times["render"] = timed(render, state.env.data.qpos)[1]
+        times.update(render_beside_actor(agent, params, state.env.data.qpos, observations))
     else:
         times["render"] = 0.0
     iteration = jax.jit(agent.iteration)
     times["iteration"] = timed(iteration, state)[1]
     return times
+
+
+def render_beside_actor(agent: SHAC, params, qpos: jax.Array, observations) -> dict[str, float]:
+    """``render``: h batches of N frames; ``render_with_actor``: the same h batches each in one
+    loop body with an actor forward on that step's N observations, the two independent of each
+    other — what rendering the next frame while the actor runs could at best achieve (compare with
+    ``render + actor_forward``). Each step's pose is nudged by its index so that XLA cannot hoist
+    the render out of the loop."""
+    steps = jnp.arange(agent.config.horizon)
+
+    def frame(q, i):
+        return agent.env.renderer(q + 1e-6 * i).sum(dtype=jnp.int32)
+
+    render = jax.jit(lambda q: jax.lax.map(lambda i: frame(q, i), steps))
+    together = jax.jit(lambda p, q, obs: jax.lax.map(
+        lambda x: (frame(q, x[0]), agent.actor.apply(p, x[1])[0].sum()), (steps, obs)))
+    return {"render": timed(render, qpos)[1], "render_with_actor": timed(together, params, qpos, observations)[1]}
 
 
 def encoder_flops(image_size: int, channels_in: int, channels: int = 32, trunk: int = 64) -> dict[str, float]:
