@@ -5,12 +5,16 @@ that writes a run's files, so no compilation)."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
+import threading
+import time
 
 import pytest
 
+import dva.analysis.compare as compare_module
 import dva.training
-from dva.analysis.compare import figure_settings
+from dva.analysis.compare import Job, cpu_groups, figure_settings, run_parallel
 from dva.cli import main
 
 
@@ -87,3 +91,62 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     (out / "runs" / "cartpole_swingup_d_va_s0" / "complete.json").unlink()
     main([*args, "--minutes", "3"])
     assert [(c["minutes"], c["resume"]) for c in fake.calls[4:]] == [(3.0, False)]
+
+
+def test_cpu_groups_are_disjoint_and_equal():
+    assert cpu_groups([4, 0, 3, 1, 2], 2) == [(0, 1), (2, 3)]  # the fifth CPU stays unused
+    assert cpu_groups([1, 0], 1) == [(0, 1)]
+    for bad in (0, 3, 1.5):
+        with pytest.raises(ValueError, match=f"workers = {bad!r} is not allowed; use an int from 1 to the 2 CPUs"):
+            cpu_groups([0, 1], bad)
+
+
+def test_parallel_runs_never_share_cpus_and_all_run_despite_a_failure():
+    jobs = [Job("fig4", "cartpole_swingup", "x", seed, 1.0, "cpu", f"run{seed}") for seed in range(5)]
+    spans: list[tuple[int, tuple[int, ...], float, float]] = []
+    lock = threading.Lock()
+
+    def launch(job, cpus):
+        start = time.perf_counter()
+        time.sleep(0.05)
+        with lock:
+            spans.append((job.seed, cpus, start, time.perf_counter()))
+        if job.seed == 1:
+            raise RuntimeError("run1 failed")
+        return f"done on {cpus}"
+
+    with pytest.raises(RuntimeError, match="run1 failed"):
+        run_parallel(jobs, [(0,), (1,)], launch)
+    assert sorted(seed for seed, *_ in spans) == [0, 1, 2, 3, 4]  # the failure stopped nothing
+    for a in spans:
+        for b in spans:
+            if a is not b and a[2] < b[3] and b[2] < a[3]:  # ran at the same time
+                assert a[1] != b[1]
+    assert len({cpus for _, cpus, *_ in spans}) == 2
+
+
+def test_a_job_survives_its_trip_to_a_child_process():
+    setting = figure_settings("ablation-value", ["cartpole_swingup"])[1]
+    job = Job("ablation-value", setting.task, setting.slug, 1, 2.0, "cpu", "out/runs/x_s1")
+    assert Job(**json.loads(json.dumps(dataclasses.asdict(job)))).setting() == setting
+
+
+def test_compare_with_workers_runs_every_job_once(fake, tmp_path, monkeypatch, capsys):
+    launched = []
+
+    def launch(job, cpus):  # in a thread instead of a pinned child: the fake training is in-process
+        launched.append(cpus)
+        return job.run()
+
+    monkeypatch.setattr(compare_module, "launch_pinned", launch)
+    monkeypatch.setattr(compare_module, "available_cpus", lambda: [0, 1])
+    args = ["compare", "ablation-value", "--seeds", "0", "1", "--minutes", "2", "--out", str(tmp_path), "--workers", "2"]
+    main(args)
+    assert sorted((c["run_dir"].name, c["minutes"]) for c in fake.calls) == [
+        ("cartpole_swingup_d_va_s0", 2.0), ("cartpole_swingup_d_va_s1", 2.0),
+        ("cartpole_swingup_d_va_without_critic_s0", 2.0), ("cartpole_swingup_d_va_without_critic_s1", 2.0)]
+    assert set(launched) <= {(0,), (1,)}
+    summary = {row["setting"]: row for row in csv.DictReader((tmp_path / "ablation-value" / "summary.csv").open())}
+    assert summary["D.Va on cartpole_swingup"]["seeds"] == "2"
+    main(args)  # all complete: nothing launched again
+    assert len(fake.calls) == 4 and "skipped (complete)" in capsys.readouterr().out

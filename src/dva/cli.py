@@ -247,12 +247,17 @@ class CompareCommand:
     threshold: float | None = None
     """Report when each setting first reached this eval return (e.g. 2× a random policy's)."""
     out: Path = Path("comparisons")
+    workers: int = 1
+    """Runs at once, each in its own process pinned to an equal share of the CPUs (e.g. 2 on a
+    2-core machine: one core per run, as the RESULTS comparisons ran). CPU only: on a GPU they
+    would share the one device."""
 
     def run(self) -> None:
         from dva.analysis.compare import compare
 
         out = self.out / self.figure
-        paths, markdown = compare(self.figure, self.tasks, self.seeds, self.minutes, out, self.preset, self.threshold)
+        paths, markdown = compare(self.figure, self.tasks, self.seeds, self.minutes, out, self.preset, self.threshold,
+                                  self.workers)
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 
