@@ -105,6 +105,12 @@ class Humanoid(LeggedRunner):
     ``R = v_x + 0.1 R_up + R_heading + R_height − 0.002‖a‖²`` with ``Δh = clip(z − 0.84, −1, 0.1)``
     and ``R_height = −200 Δh²`` if ``Δh < 0`` else ``10 Δh``. Terminates when the torso is below
     0.74 m. Joint velocities enter the observation × 0.1, as in SHAC.
+
+    Against SHAC's humanoid (spec §7's simulator): our motors are MuJoCo's gears, 0.2 × SHAC's
+    motor strengths where SHAC applies 0.35 ×, and the contacts are the default penalty ones
+    (kd 1e3, mu 0.9; SHAC's 5e3, 0.75). SHAC's torque makes the 32-step gradient grow less
+    (h=32/h=1: 120 vs 182) but learns no faster with the clipped gradient and still explodes with
+    the exact one (benchmarks/RESULTS.md, "Humanoid: SHAC's motor strength and contacts").
     """
 
     name = "humanoid"
