@@ -15,13 +15,14 @@ def xla_conv(x, kernel, stride):
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-def test_conv_valid_and_its_gradients_match_xla(stride):
+@pytest.mark.parametrize("batch", [2, 12])  # 12: three chunks of 4 whose kernel gradients add up
+def test_conv_valid_and_its_gradients_match_xla(stride, batch):
     kx, kk, kg = jax.random.split(jax.random.PRNGKey(0), 3)
-    x = jax.random.normal(kx, (2, 11, 9, 5))  # odd, non-square sizes: a wrong stride or tap order shows
+    x = jax.random.normal(kx, (batch, 11, 9, 5))  # odd, non-square sizes: a wrong stride or tap order shows
     kernel = jax.random.normal(kk, (3, 3, 5, 4))
     ours, ours_vjp = jax.vjp(lambda x, k: conv_valid(x, k, stride), x, kernel)
     reference, reference_vjp = jax.vjp(lambda x, k: xla_conv(x, k, stride), x, kernel)
-    assert ours.shape == reference.shape == (2, (11 - 3) // stride + 1, (9 - 3) // stride + 1, 4)
+    assert ours.shape == reference.shape == (batch, (11 - 3) // stride + 1, (9 - 3) // stride + 1, 4)
     np.testing.assert_allclose(ours, reference, rtol=1e-5, atol=1e-5)
     grad_out = jax.random.normal(kg, ours.shape)
     for got, expected in zip(ours_vjp(grad_out), reference_vjp(grad_out)):
