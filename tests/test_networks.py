@@ -15,7 +15,7 @@ def xla_conv(x, kernel, stride):
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-@pytest.mark.parametrize("batch", [2, 12])  # 12: three chunks of 4 whose kernel gradients add up
+@pytest.mark.parametrize("batch", [2, 12])  # the kernel gradient sums over every image
 def test_conv_valid_and_its_gradients_match_xla(stride, batch):
     kx, kk, kg = jax.random.split(jax.random.PRNGKey(0), 3)
     x = jax.random.normal(kx, (batch, 11, 9, 5))  # odd, non-square sizes: a wrong stride or tap order shows
