@@ -7,6 +7,8 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
+import sys
 import threading
 import time
 
@@ -14,7 +16,7 @@ import pytest
 
 import dva.analysis.compare as compare_module
 import dva.training
-from dva.analysis.compare import Job, cpu_groups, figure_settings, run_parallel
+from dva.analysis.compare import Job, cpu_groups, figure_settings, launch_pinned, run_parallel
 from dva.cli import main
 
 
@@ -129,6 +131,24 @@ def test_a_job_survives_its_trip_to_a_child_process():
     setting = figure_settings("ablation-value", ["cartpole_swingup"])[1]
     job = Job("ablation-value", setting.task, setting.slug, 1, 2.0, "cpu", "out/runs/x_s1")
     assert Job(**json.loads(json.dumps(dataclasses.asdict(job)))).setting() == setting
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU pinning is Linux-only")
+def test_launch_pinned_child_runs_on_its_cpus_and_its_failure_names_the_log(tmp_path, monkeypatch):
+    """A stand-in for the Python child records the CPUs it may run on (after a pause: the parent
+    pins it just after it starts) and exits with the code it is told."""
+    child = tmp_path / "child.sh"
+    child.write_text("#!/bin/sh\nsleep 1\ngrep Cpus_allowed_list /proc/self/status\nexit \"$EXIT_CODE\"\n")
+    child.chmod(0o755)
+    monkeypatch.setattr(sys, "executable", str(child))
+    cpu = sorted(os.sched_getaffinity(0))[-1]
+    job = Job("ablation-value", "cartpole_swingup", "d_va", 0, 1.0, "cpu", str(tmp_path / "runs" / "x_s0"))
+    monkeypatch.setenv("EXIT_CODE", "0")
+    assert "ran on CPUs" in launch_pinned(job, (cpu,))
+    assert (tmp_path / "runs" / "x_s0.log").read_text().split()[-1] == str(cpu)
+    monkeypatch.setenv("EXIT_CODE", "3")
+    with pytest.raises(RuntimeError, match=r"x_s0 failed \(exit 3\); its output is in .*x_s0\.log"):
+        launch_pinned(job, (cpu,))
 
 
 def test_compare_with_workers_runs_every_job_once(fake, tmp_path, monkeypatch, capsys):

@@ -133,12 +133,16 @@ def launch_pinned(job: Job, cpus: tuple[int, ...]) -> str:
     """Run ``job`` in a child process limited to ``cpus``; its output goes to ``<run_dir>.log``."""
     log = Path(job.run_dir).with_suffix(".log")
     log.parent.mkdir(parents=True, exist_ok=True)
-    pin = (lambda: os.sched_setaffinity(0, cpus)) if hasattr(os, "sched_setaffinity") else None
     with log.open("a") as output:
-        result = subprocess.run([sys.executable, "-m", "dva.analysis.compare", json.dumps(dataclasses.asdict(job))],
-                                stdout=output, stderr=subprocess.STDOUT, preexec_fn=pin)
-    if result.returncode != 0:
-        raise RuntimeError(f"run {job.run_dir} failed (exit {result.returncode}); its output is in {log}")
+        child = subprocess.Popen([sys.executable, "-m", "dva.analysis.compare", json.dumps(dataclasses.asdict(job))],
+                                 stdout=output, stderr=subprocess.STDOUT)
+        # Pinned from here, not by a preexec_fn (unsafe to fork with JAX's threads running): Popen
+        # returns once the child has exec'd, long before its interpreter starts any thread.
+        if hasattr(os, "sched_setaffinity"):
+            os.sched_setaffinity(child.pid, cpus)
+        returncode = child.wait()
+    if returncode != 0:
+        raise RuntimeError(f"run {job.run_dir} failed (exit {returncode}); its output is in {log}")
     return f"ran on CPUs {','.join(map(str, cpus))} (log: {log})"
 
 
