@@ -185,6 +185,7 @@ def compare(figure: str, tasks: list[str], seeds: list[int], minutes: float, out
             run_dir = out / "runs" / f"{setting.slug}_s{seed}"
             labels[run_dir] = f"{setting.label} on {setting.task}"
             jobs.append(Job(figure, setting.task, setting.slug, seed, minutes, preset, str(run_dir)))
+
     def report(job: Job, action: str) -> None:
         print(f"{labels[Path(job.run_dir)]}, seed {job.seed}: {action}", flush=True)
 
@@ -203,4 +204,4 @@ def compare(figure: str, tasks: list[str], seeds: list[int], minutes: float, out
 
 
 if __name__ == "__main__":  # one run of a comparison in a child process (see launch_pinned)
-    print(f"{Job(**json.loads(sys.argv[1])).run()}")
+    print(Job(**json.loads(sys.argv[1])).run())
