@@ -228,7 +228,8 @@ def norm_silu(x: jax.Array, width: int) -> jax.Array:
 
 class DreamerMLP(nn.Module):
     """``layers`` × (Dense → LayerNorm → SiLU), then a linear output (zero-initialised for the
-    reward and critic heads, so that they start predicting 0)."""
+    reward and critic heads, so that they start predicting 0, and for the actor, whose mean
+    action then starts at 0)."""
 
     units: int
     layers: int

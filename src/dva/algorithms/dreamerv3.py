@@ -12,8 +12,11 @@ steps per policy step):
   sampled from the actor, the model frozen;
 * **critic**: two-hot symlog regression on the λ-returns of the imagined rewards and
   continuations, plus a regulariser towards its EMA (``critic_ema``);
-* **actor**: REINFORCE on the advantage divided by ``max(1, S)``, S the EMA of the returns'
-  5th–95th percentile range, plus an entropy bonus.
+* **actor**: the λ-return divided by ``max(1, S)``, S the EMA of the returns' 5th–95th percentile
+  range, maximised by backpropagating through the imagined trajectory (the frozen model, the
+  reward and continuation heads and the critic) — the 2023 paper's gradient for continuous
+  actions — or, with ``actor_gradient="reinforce"``, REINFORCE on the advantage ``(R − v) /
+  max(1, S)``; plus an entropy bonus.
 
 Simplified against the reference implementation (documented, the method kept): the RSSM's
 initial state is zeros rather than learned; a GRU with LayerNorm on its input rather than the
@@ -25,6 +28,7 @@ auto-reset hid the last frame of an episode; replayed sequences start from a fre
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -74,6 +78,9 @@ class DreamerV3Config:
     actor_critic_eps: float = 1e-5
     actor_critic_clip: float = 100.0
     entropy: float = 3e-4
+    # continuous actions: the λ-return's gradient through the frozen model (the 2023 paper's choice
+    # for continuous control), or REINFORCE (its choice for discrete actions, later for both)
+    actor_gradient: Literal["backprop", "reinforce"] = "backprop"
     critic_ema: float = 0.98  # slow critic ← critic_ema · slow + (1 − critic_ema) · critic, every update
     return_decay: float = 0.99
     min_std: float = 0.1
@@ -90,6 +97,8 @@ class DreamerV3Config:
         if self.image_size % 16:
             raise ValueError(f"image_size = {self.image_size} is not allowed for DreamerV3's 4 stride-2 "
                              "convolutions; use a multiple of 16 (e.g. 48, 64)")
+        if self.actor_gradient not in ("backprop", "reinforce"):
+            raise ValueError(f"actor_gradient = {self.actor_gradient!r} is not allowed; use 'backprop' or 'reinforce'")
         if self.train_ratio <= 0:
             raise ValueError(f"train_ratio = {self.train_ratio} is not allowed; use a number > 0")
 
@@ -166,7 +175,10 @@ class DreamerV3:
         self.rssm = RSSM(cfg.deter, cfg.stoch, cfg.classes, cfg.units)
         self.reward_head = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
         self.cont_head = DreamerMLP(cfg.units, cfg.layers, 1)
-        self.actor = DreamerMLP(cfg.units, cfg.layers, 2 * action_dim)
+        # zero-initialised too: the untrained policy's mean is 0 (noise around standing still), not a
+        # constant push that ends every episode at once on tasks that stop when the robot leaves
+        # its bounds (Cart-pole's rail)
+        self.actor = DreamerMLP(cfg.units, cfg.layers, 2 * action_dim, zero_output=True)
         self.critic = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
         self.bins = symlog_bins(cfg.num_bins)
         self.optimizers = {
@@ -297,8 +309,9 @@ class DreamerV3:
 
     # ---- behaviour learning -------------------------------------------------------------------
     def imagine(self, model: dict, actor: dict, deter: jax.Array, stoch: jax.Array, key: jax.Array):
-        """``horizon`` prior steps from each start, actions sampled from the actor. Returns the
-        features of states 0…H (H + 1, M, F) and the sampled actions (H, M, A), without gradient."""
+        """``horizon`` prior steps from each start, actions sampled from the actor (reparameterised:
+        the samples, and the states they lead to, carry the actor's gradient through the frozen
+        model). Returns the features of states 0…H (H + 1, M, F) and the actions (H, M, A)."""
 
         def step(carry, key_t):
             deter, stoch = carry
@@ -311,30 +324,40 @@ class DreamerV3:
             return (deter, stoch), (feature, action)
 
         (deter, stoch), (feats, actions) = jax.lax.scan(step, (deter, stoch), jax.random.split(key, self.config.horizon))
-        feats = jnp.concatenate([feats, features(deter, stoch)[None]])
-        return jax.lax.stop_gradient(feats), jax.lax.stop_gradient(actions)
+        return jnp.concatenate([feats, features(deter, stoch)[None]]), actions
+
+    def actor_loss(self, actor: dict, model: dict, critic: dict, return_scale: jax.Array, deter: jax.Array,
+                   stoch: jax.Array, key: jax.Array):
+        """The actor's loss on ``horizon`` steps imagined from ``(deter, stoch)`` with the model and
+        critic frozen. Also returns what the critic learns from — the features, λ-returns and
+        weights, without gradient — the updated return scale and the actor's mean std."""
+        cfg = self.config
+        feats, actions = self.imagine(model, actor, deter, stoch, key)
+        reward = twohot_decode(self.reward_head.apply(model["reward"], feats[1:]), self.bins)
+        cont = jax.nn.sigmoid(self.cont_head.apply(model["cont"], feats[1:])[..., 0])
+        value = twohot_decode(self.critic.apply(critic, feats), self.bins)
+        returns = lambda_returns(reward, value, cont, cfg.gamma, cfg.lam)  # (H, M)
+        weight = jax.lax.stop_gradient(  # the probability that the trajectory reached step t
+            jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0))
+        scale = update_return_scale(return_scale, jax.lax.stop_gradient(returns), cfg.return_decay)
+        feats, actions = jax.lax.stop_gradient(feats), jax.lax.stop_gradient(actions)
+        mean, std = self.action_distribution(actor, feats[:-1])
+        if cfg.actor_gradient == "backprop":  # the return's own gradient, through the model
+            objective = returns / jnp.maximum(1.0, scale)
+        else:  # REINFORCE: the log-probability of the sampled actions times the advantage
+            log_prob = jnp.sum(-0.5 * ((actions - mean) / std) ** 2 - jnp.log(std) - 0.5 * jnp.log(2 * jnp.pi), -1)
+            objective = jax.lax.stop_gradient(normalized_advantage(returns, value[:-1], scale)) * log_prob
+        entropy = jnp.sum(jnp.log(std) + 0.5 * jnp.log(2 * jnp.pi * jnp.e), -1)
+        loss = -jnp.mean(weight * (objective + cfg.entropy * entropy))
+        return loss, (feats, jax.lax.stop_gradient(returns), weight, scale, jnp.mean(std))
 
     def behaviour_update(self, params: dict, slow_critic: dict, opt_states: dict, return_scale: jax.Array,
                          starts: tuple[jax.Array, jax.Array], key: jax.Array):
         """Actor and critic updates on trajectories imagined from ``starts`` (posterior states)."""
-        cfg = self.config
-        model = params["model"]
         deter, stoch = (jax.lax.stop_gradient(x.reshape((-1,) + x.shape[2:])) for x in starts)
-        feats, actions = self.imagine(model, params["actor"], deter, stoch, key)
-        reward = twohot_decode(self.reward_head.apply(model["reward"], feats[1:]), self.bins)
-        cont = jax.nn.sigmoid(self.cont_head.apply(model["cont"], feats[1:])[..., 0])
-        value = twohot_decode(self.critic.apply(params["critic"], feats), self.bins)
-        returns = lambda_returns(reward, value, cont, cfg.gamma, cfg.lam)  # (H, M)
-        weight = jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0)  # reached with prob.
-        return_scale = update_return_scale(return_scale, returns, cfg.return_decay)
-        advantage = jax.lax.stop_gradient(normalized_advantage(returns, value[:-1], return_scale))
-
-        def actor_loss(actor):
-            mean, std = self.action_distribution(actor, feats[:-1])
-            log_prob = jnp.sum(-0.5 * ((actions - mean) / std) ** 2 - jnp.log(std) - 0.5 * jnp.log(2 * jnp.pi), -1)
-            entropy = jnp.sum(jnp.log(std) + 0.5 * jnp.log(2 * jnp.pi * jnp.e), -1)
-            return -jnp.mean(weight * (advantage * log_prob + cfg.entropy * entropy)), jnp.mean(std)
-
+        model = jax.lax.stop_gradient(params["model"])
+        (a_loss, (feats, returns, weight, return_scale, mean_std)), actor_grads = jax.value_and_grad(
+            self.actor_loss, has_aux=True)(params["actor"], model, params["critic"], return_scale, deter, stoch, key)
         slow_value = twohot_decode(self.critic.apply(slow_critic, feats[:-1]), self.bins)
 
         def critic_loss(critic):
@@ -342,13 +365,12 @@ class DreamerV3:
             return jnp.mean(weight * (categorical_cross_entropy(logits, twohot(returns, self.bins))
                                       + categorical_cross_entropy(logits, twohot(slow_value, self.bins))))
 
-        (a_loss, mean_std), actor_grads = jax.value_and_grad(actor_loss, has_aux=True)(params["actor"])
         c_loss, critic_grads = jax.value_and_grad(critic_loss)(params["critic"])
         new = {}
         for name, grads in (("actor", actor_grads), ("critic", critic_grads)):
             updates, opt_states[name] = self.optimizers[name].update(grads, opt_states[name], params[name])
             new[name] = optax.apply_updates(params[name], updates)
-        slow_critic = optax.incremental_update(new["critic"], slow_critic, 1.0 - cfg.critic_ema)
+        slow_critic = optax.incremental_update(new["critic"], slow_critic, 1.0 - self.config.critic_ema)
         metrics = {"actor_loss": a_loss, "critic_loss": c_loss, "return_scale": return_scale, "exploration": mean_std}
         return {**params, **new}, slow_critic, opt_states, return_scale, metrics
 
