@@ -51,10 +51,11 @@ def test_dva_on_cartpole_pixels_beats_random_by_a_wide_margin(tmp_path):
     assert late_eval_return(run_dir) > 3 * random_return("cartpole_swingup")
 
 
-@pytest.mark.parametrize(("algo", "minutes"), [("drqv2", 60), ("curl", 20), ("dreamerv3", 20)])
+@pytest.mark.parametrize(("algo", "minutes"), [("drqv2", 60), ("curl", 60), ("dreamerv3", 20)])
 def test_pixel_baselines_learn_cartpole_balance(tmp_path, algo, minutes):
     """DrQ-v2, CURL and DreamerV3 from pixels, CPU preset (seed phase included). DrQ-v2 alone on
     2 cores (benchmarks/RESULTS.md): best of the last three evaluations 1710 / 2090 / 2358 at
-    20 / 40 / 50 minutes, above 2× random for good from 49 minutes, 2384 at 60."""
+    20 / 40 / 50 minutes, above 2× random for good from 49 minutes, 2384 at 60. CURL alone: 18 of
+    its 26 evaluations over minutes 48–58 above 2× random, the best of the last three 2371."""
     run_dir = train("cartpole_balance", algo, preset="cpu", minutes=minutes, run_dir=tmp_path / "run", eval_every=100)
     assert late_eval_return(run_dir) > 2 * random_return("cartpole_balance")
