@@ -22,7 +22,8 @@ Simplified against the reference implementation (documented, the method kept): t
 initial state is zeros rather than learned; a GRU with LayerNorm on its input rather than the
 block-GRU; Adam with global-norm clipping rather than adaptive gradient clipping; the reward and
 continuation of a step are predicted from the state it leads to, taken from the prior where the
-auto-reset hid the last frame of an episode; replayed sequences start from a fresh state.
+auto-reset hid the last frame of an episode; replayed sequences start from a fresh state; the
+actor's output layer is zero-initialised like the reward and critic heads (its first mean action is 0).
 """
 
 from __future__ import annotations
