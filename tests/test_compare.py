@@ -69,6 +69,13 @@ def test_figures_compare_the_paper_settings():
     assert [s.algo for s in figure_settings("fig6", ["a", "b"])] == ["dva", "dagger"] * 2
     with pytest.raises(ValueError, match="figure 'fig5' is not allowed"):
         figure_settings("fig5", ["hopper"])
+    assert [s.label for s in figure_settings("ablation-frames", ["hopper"], frames=[1, 3])] == [
+        "D.Va, 1 frame", "D.Va, 3 frames"]
+    for bad in ([], [0, 3], [2, 2], [1.5]):
+        with pytest.raises(ValueError, match=rf"frames = \[.*\] is not allowed; use distinct ints ≥ 1"):
+            figure_settings("ablation-frames", ["hopper"], frames=bad)
+    with pytest.raises(ValueError, match=r"frames = \[1\] is only allowed with ablation-frames, not with 'fig4'"):
+        figure_settings("fig4", ["hopper"], frames=[1])
 
 
 def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
@@ -93,6 +100,14 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     (out / "runs" / "cartpole_swingup_d_va_s0" / "complete.json").unlink()
     main([*args, "--minutes", "3"])
     assert [(c["minutes"], c["resume"]) for c in fake.calls[4:]] == [(3.0, False)]
+
+
+def test_compare_frames_trains_only_the_stacks_asked_for(fake, tmp_path):
+    main(["compare", "ablation-frames", "--tasks", "hopper", "--seeds", "0", "--minutes", "1", "--frames", "1", "3",
+          "--out", str(tmp_path)])
+    assert [(c["task"], c["frame_stack"]) for c in fake.calls] == [("hopper", 1), ("hopper", 3)]
+    assert sorted(p.name for p in (tmp_path / "ablation-frames" / "runs").iterdir()) == [
+        "hopper_d_va_1_frame_s0", "hopper_d_va_3_frames_s0"]
 
 
 def test_cpu_groups_are_disjoint_and_equal():
@@ -130,6 +145,9 @@ def test_parallel_runs_never_share_cpus_and_all_run_despite_a_failure():
 def test_a_job_survives_its_trip_to_a_child_process():
     setting = figure_settings("ablation-value", ["cartpole_swingup"])[1]
     job = Job("ablation-value", setting.task, setting.slug, 1, 2.0, "cpu", "out/runs/x_s1")
+    assert Job(**json.loads(json.dumps(dataclasses.asdict(job)))).setting() == setting
+    setting = figure_settings("ablation-frames", ["hopper"], frames=[8])[0]  # outside the default 1–6
+    job = Job("ablation-frames", setting.task, setting.slug, 0, 2.0, "cpu", "out/runs/y_s0", (8,))
     assert Job(**json.loads(json.dumps(dataclasses.asdict(job)))).setting() == setting
 
 

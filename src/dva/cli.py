@@ -251,13 +251,15 @@ class CompareCommand:
     """Runs at once, each in its own process pinned to an equal share of the CPUs (e.g. 2 on a
     2-core machine: one core per run, as the RESULTS comparisons ran). CPU only: on a GPU they
     would share the one device."""
+    frames: list[int] | None = None
+    """ablation-frames only: the stack sizes to compare (default 1 2 3 4 5 6)."""
 
     def run(self) -> None:
         from dva.analysis.compare import compare
 
         out = self.out / self.figure
         paths, markdown = compare(self.figure, self.tasks, self.seeds, self.minutes, out, self.preset, self.threshold,
-                                  self.workers)
+                                  self.workers, self.frames)
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 

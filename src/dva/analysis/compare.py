@@ -31,6 +31,7 @@ from typing import Literal
 
 FigureName = Literal["fig4", "fig6", "fig7", "ablation-value", "ablation-frames"]
 FIGURES: tuple[str, ...] = typing.get_args(FigureName)
+FRAME_STACKS: tuple[int, ...] = (1, 2, 3, 4, 5, 6)  # ablation-frames' settings, as the paper's
 COMPLETE = "complete.json"  # written into a run directory when its budget is spent
 
 
@@ -48,19 +49,26 @@ class Setting:
         return re.sub(r"[^a-z0-9]+", "_", f"{self.task} {self.label}".lower()).strip("_")
 
 
-def figure_settings(figure: str, tasks: list[str]) -> list[Setting]:
+def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None = None) -> list[Setting]:
     """The settings a figure compares on each of ``tasks``.
 
     fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3) visual baselines; fig6:
     D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs visual SHAC;
-    ablation-value: D.Va with and without its critic; ablation-frames: D.Va with 1–6 frames.
+    ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
+    stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable).
     """
     if figure not in FIGURES:
         raise ValueError(f"figure {figure!r} is not allowed; use one of: {', '.join(FIGURES)}")
+    if frames is not None and figure != "ablation-frames":
+        raise ValueError(f"frames = {list(frames)} is only allowed with ablation-frames, not with {figure!r}")
+    if frames is not None and (not frames or len(set(frames)) != len(frames)
+                               or not all(isinstance(k, int) and k >= 1 for k in frames)):
+        raise ValueError(f"frames = {list(frames)} is not allowed; use distinct ints ≥ 1, e.g. 1 2 3")
     if figure == "ablation-value":
         per_task = [("D.Va", "dva", ()), ("D.Va without critic", "dva", (("use_critic", False),))]
     elif figure == "ablation-frames":
-        per_task = [(f"D.Va, {k} frame{'s' * (k > 1)}", "dva", (("frame_stack", k),)) for k in range(1, 7)]
+        per_task = [(f"D.Va, {k} frame{'s' * (k > 1)}", "dva", (("frame_stack", k),))
+                    for k in (FRAME_STACKS if frames is None else frames)]
     else:
         algos = {"fig4": ("dva", "drqv2", "curl", "dreamerv3"), "fig6": ("dva", "dagger"),
                  "fig7": ("dva", "shac-pixels")}[figure]
@@ -105,9 +113,11 @@ class Job:
     minutes: float
     preset: str
     run_dir: str
+    frames: tuple[int, ...] | None = None  # ablation-frames' subset, if one was asked for
 
     def setting(self) -> Setting:
-        return next(s for s in figure_settings(self.figure, [self.task]) if s.slug == self.slug)
+        frames = None if self.frames is None else tuple(self.frames)  # a list after its trip through JSON
+        return next(s for s in figure_settings(self.figure, [self.task], frames) if s.slug == self.slug)
 
     def run(self) -> str:
         return run_setting(self.setting(), self.seed, self.minutes, self.preset, Path(self.run_dir))
@@ -172,19 +182,22 @@ def run_parallel(jobs: Sequence[Job], groups: Sequence[tuple[int, ...]],
 
 
 def compare(figure: str, tasks: list[str], seeds: list[int], minutes: float, out: Path, preset: str = "cpu",
-            threshold: float | None = None, workers: int = 1) -> tuple[list[Path], str]:
+            threshold: float | None = None, workers: int = 1,
+            frames: Sequence[int] | None = None) -> tuple[list[Path], str]:
     """Run (or complete) every run of ``figure`` and write its curves and table into ``out``;
-    ``workers`` > 1 runs that many at once, each on its own share of the CPUs."""
+    ``workers`` > 1 runs that many at once, each on its own share of the CPUs; ``frames`` picks
+    ablation-frames' stack sizes."""
     from dva.analysis.plots import plot_runs, write_summary  # matplotlib: only when plotting
 
     groups = cpu_groups(available_cpus(), workers)
     labels: dict[Path, str] = {}
     jobs: list[Job] = []
-    for setting in figure_settings(figure, tasks):
+    for setting in figure_settings(figure, tasks, frames):
         for seed in seeds:
             run_dir = out / "runs" / f"{setting.slug}_s{seed}"
             labels[run_dir] = f"{setting.label} on {setting.task}"
-            jobs.append(Job(figure, setting.task, setting.slug, seed, minutes, preset, str(run_dir)))
+            jobs.append(Job(figure, setting.task, setting.slug, seed, minutes, preset, str(run_dir),
+                            None if frames is None else tuple(frames)))
 
     def report(job: Job, action: str) -> None:
         print(f"{labels[Path(job.run_dir)]}, seed {job.seed}: {action}", flush=True)
