@@ -67,6 +67,8 @@ def test_figures_compare_the_paper_settings():
     assert [dict(s.overrides)["frame_stack"] for s in figure_settings("ablation-frames", ["hopper"])] == [1, 2, 3, 4, 5, 6]
     assert [s.algo for s in figure_settings("fig4", ["cartpole_swingup"])] == ["dva", "drqv2", "curl", "dreamerv3"]
     assert [s.algo for s in figure_settings("fig6", ["a", "b"])] == ["dva", "dagger"] * 2
+    assert [(s.algo, s.slug) for s in figure_settings("fig13", ["ant"])] == [("shac", "ant_shac"),
+                                                                          ("dpg-state", "ant_dpg_state")]
     with pytest.raises(ValueError, match="figure 'fig5' is not allowed"):
         figure_settings("fig5", ["hopper"])
     assert [s.label for s in figure_settings("ablation-frames", ["hopper"], frames=[1, 3])] == [

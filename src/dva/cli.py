@@ -237,8 +237,8 @@ class CompareCommand:
 
     figure: tyro.conf.Positional[FigureName]
     """fig4: D.Va vs DrQ-v2, CURL and DreamerV3; fig6: D.Va vs state-to-visual DAgger
-    (teacher's time included); fig7: D.Va vs visual SHAC; ablation-value: D.Va without its critic;
-    ablation-frames: D.Va with 1–6 stacked frames."""
+    (teacher's time included); fig7: D.Va vs visual SHAC; fig13: SHAC vs DPG on the state;
+    ablation-value: D.Va without its critic; ablation-frames: D.Va with 1–6 stacked frames."""
     tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
     seeds: list[int] = dataclasses.field(default_factory=lambda: [0, 1])
     minutes: float = 30.0

@@ -29,7 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
 
-FigureName = Literal["fig4", "fig6", "fig7", "ablation-value", "ablation-frames"]
+FigureName = Literal["fig4", "fig6", "fig7", "fig13", "ablation-value", "ablation-frames"]
 FIGURES: tuple[str, ...] = typing.get_args(FigureName)
 FRAME_STACKS: tuple[int, ...] = (1, 2, 3, 4, 5, 6)  # ablation-frames' settings, as the paper's
 COMPLETE = "complete.json"  # written into a run directory when its budget is spent
@@ -53,8 +53,8 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
     """The settings a figure compares on each of ``tasks``.
 
     fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3) visual baselines; fig6:
-    D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs visual SHAC;
-    ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
+    D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs visual SHAC; fig13:
+    SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels); ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
     stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable).
     """
     if figure not in FIGURES:
@@ -71,7 +71,7 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
                     for k in (FRAME_STACKS if frames is None else frames)]
     else:
         algos = {"fig4": ("dva", "drqv2", "curl", "dreamerv3"), "fig6": ("dva", "dagger"),
-                 "fig7": ("dva", "shac-pixels")}[figure]
+                 "fig7": ("dva", "shac-pixels"), "fig13": ("shac", "dpg-state")}[figure]
         per_task = [(algo, algo, ()) for algo in algos]
     return [Setting(label, task, algo, overrides) for task in tasks for label, algo, overrides in per_task]
 
