@@ -22,7 +22,7 @@ if what == "grad":
     from gradients import gradient_norms, HORIZONS
     from dva.tasks import make_task
     print("gears", make_task("humanoid").mj_model.actuator_gear[:6, 0])
-    norms = gradient_norms("humanoid", "penalty", 16)
+    norms = gradient_norms("humanoid", "penalty", 16).mean(axis=1)
     print(variant, " ".join(f"{n:.3g}" for n in norms), "ratio", f"{norms[-1]/norms[0]:.3g}", "h32/h16", f"{norms[-1]/norms[-2]:.2g}", flush=True)
 else:
     from pathlib import Path
