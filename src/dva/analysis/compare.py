@@ -54,7 +54,8 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
 
     fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3) visual baselines; fig6:
     D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs visual SHAC; fig13:
-    SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels); ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
+    SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels);
+    ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
     stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable).
     """
     if figure not in FIGURES:
