@@ -188,6 +188,21 @@ def test_without_the_critic_the_loss_is_the_windows_discounted_reward(setup, dec
     assert float(with_critic) != pytest.approx(float(loss), rel=1e-5)  # the critic's bootstrap is there
 
 
+def test_pre_tanh_penalty_adds_its_hand_computed_loss_and_action_gradient(setup, decoupled):
+    """``pre_tanh_penalty`` adds ``weight · mean(u²)`` to the loss and ``2·weight·u / (h·N·A)`` to
+    each open-loop action's gradient (u the taken pre-tanh actions), through the batched path too."""
+    shac, train, noise = setup
+    loss, taken, _, grad_actions = decoupled
+    weight = 0.3
+    penalised = SHAC(shac.env, dataclasses.replace(shac.config, pre_tanh_penalty=weight))
+    loss_of = lambda offsets: penalised.rollout(train.actor_params, train, noise, offsets)
+    (new_loss, aux), new_grad = jax.jit(jax.value_and_grad(loss_of, has_aux=True))(jnp.zeros_like(noise))
+    u = np.asarray(taken["actions"])
+    assert float(new_loss) == pytest.approx(float(loss) + weight * np.mean(u**2), rel=1e-5)
+    np.testing.assert_allclose(np.asarray(new_grad), np.asarray(grad_actions) + 2 * weight * u / u.size,
+                               rtol=1e-4, atol=1e-7)
+
+
 def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     """Through pixels: the second action depends on the first state only via the rendered frame
     (and the physics in between); visual SHAC differentiates that path, D.Va cuts it exactly."""

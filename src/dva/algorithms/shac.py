@@ -49,6 +49,13 @@ class SHACConfig:
     step to the one before (AHAC's per-step clipping, spec §7), in units of one env's window return
     (the loss is their mean over N·h, so the bound on the loss's cotangent is this ÷ N·h);
     None: exact gradients."""
+    pre_tanh_penalty: float = 0.0
+    """Weight of ``mean(u²)`` over the taken pre-tanh actions ``u = μ + σε``, added to the actor
+    loss (as rlkit's SAC ``policy_pre_activation_weight``). Where |μ| ≫ 1 the tanh is flat: the
+    return's gradient does not reach μ and the exploration noise does not reach the env, so a
+    policy pinned at its action limits stays there (D.Va's Ant standing still); this pulls μ back.
+    Its share of the gradient on log σ (≈ 2·weight·σ²) is a small push towards less noise. 0: the
+    paper's loss."""
     actor_backward_chunk: int | None = None
     """Decoupled gradients only: None differentiates the actor (the encoder above all) for all
     h × N observations in one batch, from the activations the rollout kept (the fastest on CPU);
@@ -230,7 +237,7 @@ class SHAC:
         ended, critic_obs, reward, next_value, done, finished_return, visited_obs, observations, actions, vjps = out
         # Episodes still running at the end of the window bootstrap from the target critic.
         tail = jnp.where(done[-1], 0.0, discounted_sum + discount * value(env.obs))
-        loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise))
+        loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise)) + cfg.pre_tanh_penalty * jnp.mean(actions**2)
         boundary = done.at[-1].set(True)
         trajectory = Trajectory(critic_obs=critic_obs, reward=reward, next_value=next_value, boundary=boundary)
         stats = {"finished_return_sum": finished_return.sum(), "finished_episodes": done.sum(),
