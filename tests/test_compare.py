@@ -85,6 +85,8 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     main([*args, "--minutes", "2"])
     assert [(c["algo"], c.get("use_critic"), c["minutes"], c["resume"]) for c in fake.calls] == [
         ("dva", None, 2.0, False), ("dva", False, 2.0, False)]
+    # evaluated by the clock, once a minute, whatever the setting's iteration time
+    assert all((c["eval_every"], c["eval_minutes"]) == (None, 1.0) for c in fake.calls)
     out = tmp_path / "ablation-value"
     summary = {row["setting"]: row for row in csv.DictReader((out / "summary.csv").open())}
     assert float(summary["D.Va on cartpole_swingup"]["final_mean"]) == 200.0

@@ -128,6 +128,8 @@ class TrainCommand:
     video_size: int = 256
     """Side of each env's view in that video (next to the actor's camera view)."""
     eval_every: int = 50
+    eval_minutes: float | None = None
+    """Also evaluate once this many minutes have passed since the last evaluation."""
     checkpoint_every: int | None = None
     """Checkpoint every this many iterations (default: by time, --checkpoint-minutes)."""
     checkpoint_minutes: float = 2.0
@@ -165,6 +167,7 @@ class TrainCommand:
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         run_dir = train(self.task, self.algo, preset=self.preset, seed=self.seed, iterations=self.iterations,
                         minutes=self.minutes, run_dir=self.run_dir, resume=self.resume, eval_every=self.eval_every,
+                        eval_minutes=self.eval_minutes,
                         checkpoint_every=self.checkpoint_every,
                         checkpoint_minutes=self.checkpoint_minutes, physics=self.physics,
                         **self.config_overrides())

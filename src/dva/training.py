@@ -175,8 +175,8 @@ def csv_fields(agent: Agent) -> list[str]:
 
 def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, iterations: int | None = None,
           minutes: float | None = None, run_dir: Path = Path("runs/latest"), resume: bool = False,
-          eval_every: int | None = 50, checkpoint_every: int | None = None, checkpoint_minutes: float = 2.0,
-          physics: str | None = None,
+          eval_every: int | None = 50, eval_minutes: float | None = None, checkpoint_every: int | None = None,
+          checkpoint_minutes: float = 2.0, physics: str | None = None,
           **config_overrides) -> Path:
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
 
@@ -184,8 +184,10 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     ``iterations``, or ``minutes`` (the whole call, set-up and compilation included, and what the
     agent builds on — DAgger's teacher —; so does the logged wall-clock, a fair clock for comparing
     methods; on ``resume``, minutes more), or else the agent's
-    ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations and at the
-    end (never when None). Checkpoints every ``checkpoint_every`` iterations if given, else every
+    ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations, after any
+    iteration that ends ``eval_minutes`` or more after the last evaluation (the same resolution in
+    wall-clock for fast and slow iterations: what a time-to-threshold comparison needs) and at the
+    end (never when both are None). Checkpoints every ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
     the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint.
     """
@@ -230,11 +232,18 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
         key = jax.random.PRNGKey(10_000 + int(state.iteration))
         return float(np.mean(evaluate(agent.policy(state), key)))
 
+    evaluating = bool(eval_every or eval_minutes)
+
+    def evaluation_due(n: int) -> bool:
+        return bool(eval_every and n % eval_every == 0) or bool(
+            eval_minutes and time.perf_counter() - last_eval >= 60 * eval_minutes)
+
     first = int(state.iteration)
     last_train_return, last_save = float("nan"), time.perf_counter()
     if not log.rows:  # the untrained policy's return: where the curve starts (no evaluation: nan)
         log.append({"iteration": 0, "env_steps": agent.prior_cost[1], "wall_time": offset_time, "train_return": float("nan"),
-                    "eval_return": eval_return(state) if eval_every else float("nan")})
+                    "eval_return": eval_return(state) if evaluating else float("nan")})
+    last_eval = time.perf_counter()
     bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
         while True:
@@ -247,6 +256,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             metrics = jax.device_get(metrics)  # one small transfer per iteration, for the log
             iteration_time = time.perf_counter() - tick
             n = int(state.iteration)
+            due = evaluation_due(n)
             if not metrics["healthy"]:
                 raise TrainingDiverged(f"{agent.abort_reason(metrics)} at iteration {n}; the last good "
                                        f"checkpoint is in {manager.directory}", n, metrics)
@@ -255,10 +265,12 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             row = {"iteration": n, "env_steps": agent.prior_cost[1] + n * agent.env_steps_per_iteration,
                    "wall_time": round(offset_time + time.perf_counter() - start, 3),
                    "train_return": last_train_return,
-                   "eval_return": eval_return(state) if eval_every and n % eval_every == 0 else "",
+                   "eval_return": eval_return(state) if due else "",
                    **{name: float(metrics[name]) for name in agent.metric_names},
                    "iteration_time": round(iteration_time, 4)}
             log.append(row)
+            if due:
+                last_eval = time.perf_counter()
             if (n % checkpoint_every == 0 if checkpoint_every else
                     time.perf_counter() - last_save >= 60 * checkpoint_minutes):
                 save(manager, state)
@@ -271,7 +283,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             if metrics.get("stop", False):  # the agent's own stopping rule (DAgger: BC loss low enough)
                 break
         last = log.rows[-1]
-        if eval_every and last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):
+        if evaluating and last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):
             log.set_last("eval_return", eval_return(state))  # end on an evaluation
     finally:
         bar.close()
