@@ -44,7 +44,7 @@ def saturation(run_dir: Path, steps: int) -> list:
     log_std = np.mean(np.asarray(actor_params["params"]["log_std"]))
     return [f"{spec.task} {spec.algo} ({run_dir.name})", f"{np.median(np.abs(mean)):.2f}",
             f"{np.percentile(np.abs(mean), 90):.2f}", f"{np.mean(np.abs(action) > 0.95):.2f}",
-            f"{action.std(axis=0).mean():.2f}", f"{log_std:.2f}", f"{reward.mean():.2f}"]
+            f"{action.std(axis=0).mean():.3f}", f"{log_std:.2f}", f"{reward.mean():.2f}"]
 
 
 def main() -> None:
