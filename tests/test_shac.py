@@ -203,6 +203,18 @@ def test_pre_tanh_penalty_adds_its_hand_computed_loss_and_action_gradient(setup,
                                rtol=1e-4, atol=1e-7)
 
 
+def test_init_log_std_sets_the_exploration_noise_of_the_taken_actions(setup):
+    """``init_log_std`` is the initial log σ: a taken pre-tanh action is ``μ + e^{init_log_std} ε``."""
+    shac, train, noise = setup
+    wide = SHAC(shac.env, dataclasses.replace(shac.config, init_log_std=0.5))
+    params = wide.actor.init(jax.random.PRNGKey(2), jnp.zeros((NUM_ENVS, wide.task.obs_dim)))
+    observation = jax.random.normal(jax.random.PRNGKey(3), (NUM_ENVS, wide.task.obs_dim))
+    mean = wide.pre_tanh_action(params, observation, None)
+    taken = wide.pre_tanh_action(params, observation, noise[0])
+    np.testing.assert_allclose(np.asarray(taken - mean), np.exp(0.5) * np.asarray(noise[0]), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(shac.actor.apply(train.actor_params, observation)[1]), -1.0)
+
+
 def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     """Through pixels: the second action depends on the first state only via the rendered frame
     (and the physics in between); visual SHAC differentiates that path, D.Va cuts it exactly."""

@@ -56,6 +56,10 @@ class SHACConfig:
     policy pinned at its action limits stays there (D.Va's Ant standing still); this pulls μ back.
     Its share of the gradient on log σ (≈ 2·weight·σ²) is a small push towards less noise. 0: the
     paper's loss."""
+    init_log_std: float = -1.0
+    """The actor's state-independent log σ of the pre-tanh action at initialisation (learned after;
+    SHAC's −1). Larger: more exploration noise at the start, so that a pixel actor sees frames that
+    differ from step to step before its policy settles into a posture."""
     actor_backward_chunk: int | None = None
     """Decoupled gradients only: None differentiates the actor (the encoder above all) for all
     h × N observations in one batch, from the activations the rollout kept (the fastest on CPU);
@@ -133,7 +137,7 @@ class SHAC:
                                  "the Warp renderer is not — use gradient='decoupled' (D.Va)")
         self.env, self.task, self.config = env, env.task, config
         self.actor = Actor(self.task.action_dim, config.actor_hidden, pixels=config.observation == "pixels",
-                           trunk=config.trunk)
+                           trunk=config.trunk, init_log_std=config.init_log_std)
         self.critic = Critic(config.critic_hidden)
 
         def optimizer(lr: float, steps: int) -> optax.GradientTransformation:
