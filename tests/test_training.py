@@ -53,6 +53,32 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert compiled(agent).iteration._cache_size() == 1
 
 
+def test_evaluations_are_kept_off_the_runs_clock(tmp_path, monkeypatch):
+    """The logged wall-clock (and so the ``minutes`` budget) counts set-up, compilation and
+    training, not evaluating: with every evaluation made to take 1.5 s, consecutive rows of a
+    run evaluated every iteration stay far less than that apart."""
+    import dva.training
+
+    real = dva.training.compiled
+
+    def slow_evaluations(agent):
+        functions = real(agent)
+
+        def evaluate(*args):
+            time.sleep(1.5)
+            return functions.evaluate(*args)
+
+        return functions._replace(evaluate=evaluate)
+
+    monkeypatch.setattr(dva.training, "compiled", slow_evaluations)
+    run_dir = tmp_path / "run"
+    train("cartpole_swingup", "shac", preset="cpu", iterations=3, run_dir=run_dir, eval_every=1, **SMALL)
+    logged = rows(run_dir)
+    assert all(r["eval_return"] != "" for r in logged)
+    times = [float(r["wall_time"]) for r in logged[1:]]  # from iteration 1: the iteration is compiled
+    assert max(np.diff(times)) < 1.0, times
+
+
 @pytest.mark.parametrize("algo", [algo for algo in ALGORITHMS if algo != "dagger"])  # DAgger's is SHAC's + a replay
 def test_a_run_starts_from_the_types_a_checkpoint_restores(algo):
     """Orbax restores no weak types (arrays made from Python scalars): a run must not start from

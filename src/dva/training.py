@@ -182,9 +182,9 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
 
     ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
     ``iterations``, or ``minutes`` (the whole call, set-up and compilation included, and what the
-    agent builds on — DAgger's teacher —; so does the logged wall-clock, a fair clock for comparing
-    methods; on ``resume``, minutes more), or else the agent's
-    ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations, after any
+    agent builds on — DAgger's teacher —, evaluations excluded; so does the logged wall-clock, a
+    fair clock for comparing methods whatever their tasks' evaluations cost; on ``resume``,
+    minutes more), or else the agent's ``default_iterations``. Evaluates at iteration 0, every ``eval_every`` iterations, after any
     iteration that ends ``eval_minutes`` or more after the last evaluation (the same resolution in
     wall-clock for fast and slow iterations: what a time-to-threshold comparison needs) and at the
     end (never when both are None). Checkpoints every ``checkpoint_every`` iterations if given, else every
@@ -227,10 +227,20 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
 
     _, step_fn, evaluate, _ = compiled(agent)
 
+    evaluation_seconds = 0.0  # kept off the clock: evaluating is not training
+
+    def clock() -> float:
+        """Seconds of this call on the run's clock: everything but evaluations."""
+        return time.perf_counter() - start - evaluation_seconds
+
     def eval_return(state) -> float:
         """Mean deterministic return, one full episode per env, with a key per iteration."""
+        nonlocal evaluation_seconds
+        began = time.perf_counter()
         key = jax.random.PRNGKey(10_000 + int(state.iteration))
-        return float(np.mean(evaluate(agent.policy(state), key)))
+        value = float(np.mean(evaluate(agent.policy(state), key)))
+        evaluation_seconds += time.perf_counter() - began
+        return value
 
     evaluating = bool(eval_every or eval_minutes)
 
@@ -247,7 +257,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
         while True:
-            elapsed_min = (spent_before + time.perf_counter() - start) / 60
+            elapsed_min = (spent_before + clock()) / 60
             done = int(state.iteration) - first
             if (total is not None and done >= total) or (minutes is not None and elapsed_min >= minutes):
                 break
@@ -263,7 +273,7 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
             row = {"iteration": n, "env_steps": agent.prior_cost[1] + n * agent.env_steps_per_iteration,
-                   "wall_time": round(offset_time + time.perf_counter() - start, 3),
+                   "wall_time": round(offset_time + clock(), 3),
                    "train_return": last_train_return,
                    "eval_return": eval_return(state) if due else "",
                    **{name: float(metrics[name]) for name in agent.metric_names},
