@@ -57,12 +57,9 @@ def test_evaluations_are_kept_off_the_runs_clock(tmp_path, monkeypatch):
     """The logged wall-clock (and so the ``minutes`` budget) counts set-up, compilation and
     training, not evaluating: with every evaluation made to take 1.5 s, consecutive rows of a
     run evaluated every iteration stay far less than that apart."""
-    import dva.training
-
-    real = dva.training.compiled
 
     def slow_evaluations(agent):
-        functions = real(agent)
+        functions = compiled(agent)
 
         def evaluate(*args):
             time.sleep(1.5)
@@ -70,7 +67,7 @@ def test_evaluations_are_kept_off_the_runs_clock(tmp_path, monkeypatch):
 
         return functions._replace(evaluate=evaluate)
 
-    monkeypatch.setattr(dva.training, "compiled", slow_evaluations)
+    monkeypatch.setattr("dva.training.compiled", slow_evaluations)
     run_dir = tmp_path / "run"
     train("cartpole_swingup", "shac", preset="cpu", iterations=3, run_dir=run_dir, eval_every=1, **SMALL)
     logged = rows(run_dir)
