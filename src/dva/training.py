@@ -185,9 +185,9 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     agent builds on — DAgger's teacher —, evaluations excluded; so does the logged wall-clock, a
     fair clock for comparing methods whatever their tasks' evaluations cost; on ``resume``,
     minutes more), or else the agent's ``default_iterations``. Evaluates at iteration 0, every
-    ``eval_every`` iterations, after any iteration that ends ``eval_minutes`` or more after the last evaluation (the same resolution in
-    wall-clock for fast and slow iterations: what a time-to-threshold comparison needs) and at the
-    end (never when both are None). Checkpoints every ``checkpoint_every`` iterations if given, else every
+    ``eval_every`` iterations, after any iteration that ends ``eval_minutes`` or more after the
+    last evaluation (the same resolution in wall-clock for fast and slow iterations: what a
+    time-to-threshold comparison needs) and at the end (never when both are None). Checkpoints every ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
     the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint.
     """
