@@ -244,6 +244,58 @@ class DreamerMLP(nn.Module):
         return nn.Dense(self.out, kernel_init=init)(x)
 
 
+def _space_to_depth(x: jax.Array) -> jax.Array:
+    """(N, 2H, 2W, C) → (N, H, W, 4C), each 2×2 block's pixels as channels in (row, column, C) order."""
+    n, height, width, channels = x.shape
+    blocks = x.reshape(n, height // 2, 2, width // 2, 2, channels).transpose(0, 1, 3, 2, 4, 5)
+    return blocks.reshape(n, height // 2, width // 2, 4 * channels)
+
+
+def _pad_one(x: jax.Array) -> jax.Array:
+    return jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+
+
+def strided_conv4(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """``nn.Conv(…, (4, 4), (2, 2), "SAME")`` without its bias, for even sizes: the padded input's
+    2×2 blocks become channels, so the 4×4 stride-2 convolution is a 2×2 stride-1 one
+    (:func:`conv_valid`, a patch matmul) with the same multiply-adds — XLA's strided convolution
+    and its gradients are several times slower on CPU (``benchmarks/RESULTS.md``, DreamerV3)."""
+    channels, features = kernel.shape[2:]
+    # kernel[2a + b, 2a' + b'] multiplies block (y + a, y' + a')'s pixel (b, b')
+    blocked = kernel.reshape(2, 2, 2, 2, channels, features).transpose(0, 2, 1, 3, 4, 5)
+    return conv_valid(_space_to_depth(_pad_one(x)), blocked.reshape(2, 2, 4 * channels, features), 1)
+
+
+def strided_conv4_transpose(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """``nn.ConvTranspose(…, (4, 4), (2, 2), "SAME")`` without its bias: each of the output's four
+    pixel phases (row and column parity r, r') is a 2×2 stride-1 convolution of the padded input
+    with the kernel taps ``kernel[r::2, r'::2]``, so no multiply-add touches the zeros XLA's
+    input-dilated convolution inserts (4× the work, on CPU its slowest form)."""
+    padded, (n, height, width), features = _pad_one(x), x.shape[:3], kernel.shape[-1]
+    phases = [[conv_valid(padded[:, r: r + height + 1, c: c + width + 1], kernel[r::2, c::2], 1) for c in (0, 1)]
+              for r in (0, 1)]  # output pixel (2m + r, 2m' + c) reads input rows m + r − 1 + (0, 1)
+    interleaved = jnp.stack([jnp.stack(row, axis=3) for row in phases], axis=2)  # (N, H, r, W, c, F)
+    return interleaved.reshape(n, 2 * height, 2 * width, features)
+
+
+class StridedConv4(nn.Module):
+    """A 4×4, stride-2, SAME convolution (or its transpose, ``transpose=True``) with bias: the
+    parameters, names and initialisation of ``nn.Conv`` / ``nn.ConvTranspose``, computed by
+    :func:`strided_conv4` / :func:`strided_conv4_transpose`."""
+
+    features: int
+    transpose: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        if not self.transpose and (x.shape[1] % 2 or x.shape[2] % 2):
+            raise ValueError(f"image size {x.shape[1:3]} is not allowed for a stride-2 4×4 convolution; "
+                             "use even sizes")
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (4, 4, x.shape[-1], self.features))
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        return (strided_conv4_transpose if self.transpose else strided_conv4)(x, kernel) + bias
+
+
 class ConvEncoder(nn.Module):
     """4 × (4×4 conv, stride 2, LayerNorm, SiLU) with ``depth`` × (1, 2, 4, 8) channels: a uint8
     (…, S, S, 3) image becomes (S/16)² × 8·depth features."""
@@ -254,8 +306,8 @@ class ConvEncoder(nn.Module):
     def __call__(self, pixels: jax.Array) -> jax.Array:
         batch_shape = pixels.shape[:-3]
         x = scale_pixels(pixels.reshape((-1,) + pixels.shape[-3:]))
-        for multiplier in (1, 2, 4, 8):
-            x = nn.silu(nn.LayerNorm()(nn.Conv(self.depth * multiplier, (4, 4), (2, 2), "SAME")(x)))
+        for index, multiplier in enumerate((1, 2, 4, 8)):  # nn.Conv's names: older checkpoints load
+            x = nn.silu(nn.LayerNorm()(StridedConv4(self.depth * multiplier, name=f"Conv_{index}")(x)))
         return x.reshape(batch_shape + (-1,))
 
 
@@ -271,9 +323,10 @@ class ConvDecoder(nn.Module):
         batch_shape, side = features.shape[:-1], self.image_size // 16
         x = nn.Dense(side * side * 8 * self.depth)(features.reshape(-1, features.shape[-1]))
         x = x.reshape(-1, side, side, 8 * self.depth)
-        for multiplier in (4, 2, 1):
-            x = nn.silu(nn.LayerNorm()(nn.ConvTranspose(self.depth * multiplier, (4, 4), (2, 2), "SAME")(x)))
-        x = nn.ConvTranspose(3, (4, 4), (2, 2), "SAME")(x)
+        for index, multiplier in enumerate((4, 2, 1)):
+            x = StridedConv4(self.depth * multiplier, transpose=True, name=f"ConvTranspose_{index}")(x)
+            x = nn.silu(nn.LayerNorm()(x))
+        x = StridedConv4(3, transpose=True, name="ConvTranspose_3")(x)
         return x.reshape(batch_shape + x.shape[1:])
 
 
