@@ -55,7 +55,6 @@ def measure(task: str, preset: str, form: str, repeats: int) -> dict[str, float]
         model = state.params["model"]
         frames = jax.random.randint(jax.random.PRNGKey(1), (config.batch_size * config.batch_length, config.image_size,
                                                             config.image_size, 3), 0, 256).astype(jnp.uint8)
-
         features = jax.random.normal(jax.random.PRNGKey(2), (len(frames), config.deter + config.stoch * config.classes))
 
         def reconstruction_loss(encoder, decoder):  # the encoder and decoder passes one update makes

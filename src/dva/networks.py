@@ -258,8 +258,9 @@ def _pad_one(x: jax.Array) -> jax.Array:
 def strided_conv4(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """``nn.Conv(…, (4, 4), (2, 2), "SAME")`` without its bias, for even sizes: the padded input's
     2×2 blocks become channels, so the 4×4 stride-2 convolution is a 2×2 stride-1 one
-    (:func:`conv_valid`, a patch matmul) with the same multiply-adds — XLA's strided convolution
-    and its gradients are several times slower on CPU (``benchmarks/RESULTS.md``, DreamerV3)."""
+    (:func:`conv_valid`, a patch matmul) with the same multiply-adds. On CPU, DreamerV3's encoder
+    and decoder together run 1.65× faster this way than with XLA's convolutions
+    (``benchmarks/dreamer_update.py``; ``benchmarks/RESULTS.md``, DreamerV3)."""
     channels, features = kernel.shape[2:]
     # kernel[2a + b, 2a' + b'] multiplies block (y + a, y' + a')'s pixel (b, b')
     blocked = kernel.reshape(2, 2, 2, 2, channels, features).transpose(0, 2, 1, 3, 4, 5)
@@ -268,9 +269,9 @@ def strided_conv4(x: jax.Array, kernel: jax.Array) -> jax.Array:
 
 def strided_conv4_transpose(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """``nn.ConvTranspose(…, (4, 4), (2, 2), "SAME")`` without its bias: each of the output's four
-    pixel phases (row and column parity r, r') is a 2×2 stride-1 convolution of the padded input
-    with the kernel taps ``kernel[r::2, r'::2]``, so no multiply-add touches the zeros XLA's
-    input-dilated convolution inserts (4× the work, on CPU its slowest form)."""
+    pixel phases (row and column parity r, c) is a 2×2 stride-1 convolution of the padded input
+    with the kernel taps ``kernel[r::2, c::2]``: no multiply-add touches the zeros of XLA's
+    input-dilated convolution, three quarters of its input."""
     padded, (n, height, width), features = _pad_one(x), x.shape[:3], kernel.shape[-1]
     phases = [[conv_valid(padded[:, r: r + height + 1, c: c + width + 1], kernel[r::2, c::2], 1) for c in (0, 1)]
               for r in (0, 1)]  # output pixel (2m + r, 2m' + c) reads input rows m + r − 1 + (0, 1)
