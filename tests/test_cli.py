@@ -106,10 +106,13 @@ def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
         plot_runs([tmp_path], tmp_path)
 
 
-def test_plot_summary_reports_final_best_and_time_to_threshold(tmp_path):
+def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, monkeypatch):
     import json
 
+    import dva.analysis.plots
     from dva.analysis.plots import write_summary
+
+    monkeypatch.setattr(dva.analysis.plots, "LATE_POINTS", 3)  # the median of each run's last three
 
     def fake_run(name, algo, seed, rows):
         run_dir = tmp_path / name
@@ -121,18 +124,19 @@ def test_plot_summary_reports_final_best_and_time_to_threshold(tmp_path):
         (run_dir / "progress.csv").write_text("\n".join(lines) + "\n")
         return run_dir
 
-    runs = [fake_run("a0", "dva", 0, [(0, 0, 100), (1000, 60, 2500), (2000, 120, 2000)]),
+    runs = [fake_run("a0", "dva", 0, [(0, 0, 100), (500, 30, 50), (1000, 60, 2500), (2000, 120, 2000)]),
             fake_run("a1", "dva", 1, [(0, 0, 100), (1000, 60, 900), (3000, 240, 2200)]),
             fake_run("b0", "curl", 0, [(0, 0, 50), (500, 600, 300)])]
     path, markdown = write_summary(runs, tmp_path / "out", threshold=2092.0)
     rows = {row["setting"]: row for row in csv.DictReader(path.open())}
     dva, curl = rows["dva on cartpole_balance (cpu preset)"], rows["curl on cartpole_balance (cpu preset)"]
     assert float(dva["final_mean"]) == 2100.0 and float(dva["final_std"]) == 100.0
+    assert float(dva["late_mean"]) == 1450.0 and float(dva["late_std"]) == 550.0  # the runs' 2000 and 900
     assert float(dva["best_mean"]) == 2350.0 and dva["reached"] == "2"
     assert float(dva["minutes_to_threshold"]) == 2.5  # median of 1 and 4 minutes
     assert float(dva["env_steps_to_threshold"]) == 2000.0
     assert curl["reached"] == "0" and curl["minutes_to_threshold"] == "nan"
-    assert "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 300 | 10.0 | 500 | 0 / 1 | nan | nan |" in markdown
+    assert "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | 300 | 10.0 | 500 | 0 / 1 | nan | nan |" in markdown
     assert (tmp_path / "out" / "summary.md").read_text() == markdown
 
 

@@ -213,7 +213,8 @@ class EvalCommand:
 @dataclasses.dataclass
 class PlotCommand:
     """Plot return vs wall-clock and vs env steps (runs of one task and algo averaged: mean ± std) and
-    write a table of each setting's final and best return and, with ``--threshold``, time to reach it."""
+    write a table of each setting's final, late (median of each run's last 10 evaluations) and best
+    return and, with ``--threshold``, time to reach it."""
 
     run_dirs: tyro.conf.Positional[list[Path]]
     out: Path = Path("plots")
