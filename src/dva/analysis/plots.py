@@ -76,15 +76,17 @@ def first_reach(curve: dict[str, np.ndarray], metric: str, threshold: float) -> 
 def summarize_runs(run_dirs: list[Path], metric: str = "eval_return", threshold: float | None = None,
                    labels: dict[Path, str] | None = None) -> list[dict]:
     """One row per setting: seeds, final, late (each run's median over its last
-    :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± std over seeds), run length, and with a ``threshold`` how many seeds reached it and the median wall-clock and env steps
-    they took (NaN when none did)."""
+    :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± std over seeds), run length, and
+    with a ``threshold`` how many seeds reached it and the median wall-clock and env steps they
+    took (NaN when none did)."""
     rows = []
     for label, curves in grouped_curves(run_dirs, metric, labels).items():
         final = np.array([c[metric][-1] for c in curves])
         late = np.array([np.median(c[metric][-LATE_POINTS:]) for c in curves])
         best = np.array([c[metric].max() for c in curves])
         row = {"setting": label, "seeds": len(curves), "final_mean": final.mean(), "final_std": final.std(),
-               "late_mean": late.mean(), "late_std": late.std(), "best_mean": best.mean(), "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
+               "late_mean": late.mean(), "late_std": late.std(), "best_mean": best.mean(),
+               "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
                "env_steps": np.mean([c["env_steps"][-1] for c in curves])}
         if threshold is not None:
             reached = [r for r in (first_reach(c, metric, threshold) for c in curves) if r is not None]
@@ -104,7 +106,8 @@ def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> 
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
         cells = [row["setting"], str(row["seeds"]), f"{row['final_mean']:.0f} ± {row['final_std']:.0f}",
-                 f"{row['late_mean']:.0f} ± {row['late_std']:.0f}", f"{row['best_mean']:.0f}", f"{row['minutes']:.1f}", f"{row['env_steps']:.0f}"]
+                 f"{row['late_mean']:.0f} ± {row['late_std']:.0f}", f"{row['best_mean']:.0f}", f"{row['minutes']:.1f}",
+                 f"{row['env_steps']:.0f}"]
         if threshold is not None:
             cells += [f"{row['reached']} / {row['seeds']}", f"{row['minutes_to_threshold']:.1f}",
                       f"{row['env_steps_to_threshold']:.0f}"]
