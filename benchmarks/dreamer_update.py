@@ -1,7 +1,7 @@
 """Seconds per DreamerV3 update (world model, imagination, actor and critic) and per pass of its
-conv encoder + decoder alone, with the 4×4 stride-2 convolutions as patch matmuls (ours, the
-default) against XLA's convolutions (what Flax's ``nn.Conv`` / ``nn.ConvTranspose`` run), and the
-ratio. CPU by default; the same script uses a GPU when JAX sees one.
+conv encoder + decoder alone, with the 4×4 stride-2 convolutions as 2×2 convolutions over 2×2
+pixel blocks (ours, the default) against XLA's strided and input-dilated convolutions (what Flax's
+``nn.Conv`` / ``nn.ConvTranspose`` run), and the ratio. CPU by default; the same script uses a GPU when JAX sees one.
 
     python benchmarks/dreamer_update.py [--task cartpole_balance] [--preset cpu] [--repeats 5]
 """
@@ -27,7 +27,7 @@ def xla_strided_conv4_transpose(x, kernel):
 
 @contextlib.contextmanager
 def convolutions(form: str):
-    """Trace the DreamerV3 conv stacks with ``form``'s convolutions ("patch": ours, "xla")."""
+    """Trace the DreamerV3 conv stacks with ``form``'s convolutions ("blocks": ours, "xla")."""
     import dva.networks as networks
 
     ours = networks.strided_conv4, networks.strided_conv4_transpose
@@ -83,12 +83,12 @@ def main() -> None:
     print(f"DreamerV3 on {args.task}, preset {args.preset}: {config.batch_size} × {config.batch_length} replayed "
           f"steps of {config.image_size}² per update, CNN depth {config.cnn_depth}, deter {config.deter}")
     print(machine_description())
-    times = {form: measure(args.task, args.preset, form, args.repeats) for form in ("xla", "patch")}
-    rows = [(label, f"{times['xla'][key]:.3f}", f"{times['patch'][key]:.3f}",
-             f"{times['xla'][key] / times['patch'][key]:.2f}×")
+    times = {form: measure(args.task, args.preset, form, args.repeats) for form in ("xla", "blocks")}
+    rows = [(label, f"{times['xla'][key]:.3f}", f"{times['blocks'][key]:.3f}",
+             f"{times['xla'][key] / times['blocks'][key]:.2f}×")
             for key, label in (("update_s", "one update (s)"), ("conv_s", "encoder + decoder, forward + backward (s)"),
                                ("compile_s", "compile + first run (s)"))]
-    print(markdown_table(["best of the timed runs", "XLA convolutions", "patch matmuls (default)", "speed-up"], rows))
+    print(markdown_table(["best of the timed runs", "XLA convolutions", "2×2 block convolutions (default)", "speed-up"], rows))
 
 
 if __name__ == "__main__":

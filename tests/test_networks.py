@@ -1,5 +1,7 @@
-"""The pixel encoders' convolutions: our patch-matmul forms and custom gradient against XLA's
-convolution (and Flax's strided and transposed layers) and their autodiff gradients."""
+"""The pixel encoders' convolutions against Flax's layers (DrQ-v2's stack; DreamerV3's strided and
+transposed ones as 2×2 block convolutions), values and gradients."""
+
+import os
 
 import flax.linen as nn
 import jax
@@ -7,27 +9,45 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4, conv_valid
+from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4
+from dva.runtime import CPU_FLAGS, configure_xla
 
 
-def xla_conv(x, kernel, stride):
-    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID",
-                                        dimension_numbers=("NHWC", "HWIO", "NHWC"))
+class FlaxPixelEncoder(nn.Module):
+    """DrQ-v2's stack written with Flax's own layers: the reference for :class:`PixelEncoder`."""
+
+    @nn.compact
+    def __call__(self, pixels):
+        x = pixels.astype(jnp.float32) / 255.0 - 0.5
+        for stride in (2, 1, 1, 1):
+            x = nn.relu(nn.Conv(32, (3, 3), (stride, stride), padding="VALID")(x))
+        return x.reshape(x.shape[0], -1)
 
 
-@pytest.mark.parametrize("stride", [1, 2])
-@pytest.mark.parametrize("batch", [2, 12])  # the kernel gradient sums over every image
-def test_conv_valid_and_its_gradients_match_xla(stride, batch):
-    kx, kk, kg = jax.random.split(jax.random.PRNGKey(0), 3)
-    x = jax.random.normal(kx, (batch, 11, 9, 5))  # odd, non-square sizes: a wrong stride or tap order shows
-    kernel = jax.random.normal(kk, (3, 3, 5, 4))
-    ours, ours_vjp = jax.vjp(lambda x, k: conv_valid(x, k, stride), x, kernel)
-    reference, reference_vjp = jax.vjp(lambda x, k: xla_conv(x, k, stride), x, kernel)
-    assert ours.shape == reference.shape == (batch, (11 - 3) // stride + 1, (9 - 3) // stride + 1, 4)
-    np.testing.assert_allclose(ours, reference, rtol=1e-5, atol=1e-5)
-    grad_out = jax.random.normal(kg, ours.shape)
-    for got, expected in zip(ours_vjp(grad_out), reference_vjp(grad_out)):
-        np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-4)
+def test_pixel_encoder_matches_flax_layers_with_the_same_parameters():
+    """Same parameter tree as Flax's ``nn.Conv`` stack (older checkpoints load), same outputs and
+    gradients, on an odd, non-square image (a wrong stride or tap order shows)."""
+    pixels = jax.random.randint(jax.random.PRNGKey(0), (3, 19, 17, 9), 0, 256).astype(jnp.uint8)
+    params = PixelEncoder().init(jax.random.PRNGKey(1), pixels)
+    assert jax.tree.structure(params) == jax.tree.structure(FlaxPixelEncoder().init(jax.random.PRNGKey(1), pixels))
+    loss = lambda module: lambda p: jnp.sum(jnp.sin(module.apply(p, pixels)))  # noqa: E731
+    ours, ours_grad = jax.value_and_grad(loss(PixelEncoder()))(params)
+    reference, reference_grad = jax.value_and_grad(loss(FlaxPixelEncoder()))(params)
+    np.testing.assert_allclose(ours, reference, rtol=1e-5)
+    for got, expected in zip(jax.tree.leaves(ours_grad), jax.tree.leaves(reference_grad)):
+        np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_runtime_turns_off_ynnpack_convolutions_unless_the_user_chose(monkeypatch):
+    """XLA's CPU convolutions are fast only with YNNPACK's fusions off (dva.runtime); a user's own
+    XLA_FLAGS are kept, and their own YNN setting wins."""
+    assert "xla_cpu_experimental_ynn_fusion_type" in os.environ["XLA_FLAGS"]  # importing dva set it here
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    configure_xla()
+    assert os.environ["XLA_FLAGS"] == f"--xla_backend_optimization_level=0 {CPU_FLAGS}"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_experimental_ynn_fusion_type=dot")
+    configure_xla()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_experimental_ynn_fusion_type=dot"
 
 
 def test_pixel_encoder_feature_size():

@@ -5,7 +5,6 @@ and heads; running mean/std statistics."""
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 
 import flax.linen as nn
@@ -14,56 +13,13 @@ import jax.numpy as jnp
 from flax import struct
 
 
-def _conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    """A VALID, NHWC × HWIO convolution: XLA's own, forward and gradients. On the CPU it runs at
+    ≈ 80 GFLOP/s only with YNNPACK's convolution fusions off, which :mod:`dva.runtime` sees to
+    (at ≈ 10 with them on, slower than the patch matmuls this project used before;
+    ``benchmarks/RESULTS.md``, "XLA's CPU convolutions")."""
     return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID",
                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
-
-
-def _seen_by_tap(x: jax.Array, i: int, j: int, stride: int, out: tuple[int, int]) -> jax.Array:
-    """The input pixels kernel entry (i, j) multiplies, one per output pixel (N, *out, C)."""
-    height, width = out
-    return x[:, i: i + stride * (height - 1) + 1: stride, j: j + stride * (width - 1) + 1: stride]
-
-
-def _patches(x: jax.Array, size: tuple[int, int], stride: int, out: tuple[int, int]) -> jax.Array:
-    """im2col: each output pixel's receptive field as one row, taps in (i, j, channel) order."""
-    return jnp.concatenate([_seen_by_tap(x, i, j, stride, out) for i in range(size[0]) for j in range(size[1])], axis=-1)
-
-
-def _conv_as_matmul(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    kh, kw, channels, features = kernel.shape
-    out = ((x.shape[1] - kh) // stride + 1, (x.shape[2] - kw) // stride + 1)
-    return _patches(x, (kh, kw), stride, out) @ kernel.reshape(kh * kw * channels, features)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    """A VALID, NHWC × HWIO convolution whose forward is one matmul over image patches and whose
-    kernel gradient is one matmul per kernel tap: on CPU both run several times faster than XLA's
-    convolution and its kernel gradient (spec §6; ``benchmarks/RESULTS.md``, D.Va iteration time)."""
-    return _conv_as_matmul(x, kernel, stride)
-
-
-def _conv_forward(x, kernel, stride):
-    return _conv_as_matmul(x, kernel, stride), (x, kernel)
-
-
-def _conv_backward(stride, residuals, grad_out):
-    x, kernel = residuals
-    flat_grad = grad_out.reshape(-1, grad_out.shape[-1])
-
-    def tap(i: int, j: int) -> jax.Array:  # the inputs kernel entry (i, j) saw, against the output grads
-        return _seen_by_tap(x, i, j, stride, grad_out.shape[1:3]).reshape(-1, x.shape[-1]).T @ flat_grad
-
-    kh, kw = kernel.shape[:2]
-    # One matmul per tap, not one over the patch matrix: that matrix (9× the input) costs more to
-    # build again than it saves here, measured in the D.Va actor backward.
-    grad_kernel = jnp.stack([jnp.stack([tap(i, j) for j in range(kw)]) for i in range(kh)])
-    _, input_vjp = jax.vjp(lambda x: _conv(x, kernel, stride), x)  # XLA's transposed conv is fast
-    return input_vjp(grad_out)[0], grad_kernel
-
-
-conv_valid.defvjp(_conv_forward, _conv_backward)
 
 
 def scale_pixels(pixels: jax.Array) -> jax.Array:
@@ -73,7 +29,7 @@ def scale_pixels(pixels: jax.Array) -> jax.Array:
 
 
 class Conv(nn.Module):
-    """3×3 VALID convolution + bias using :func:`conv_valid` (same parameters as ``nn.Conv``)."""
+    """3×3 VALID convolution + bias (the parameters of ``nn.Conv``; older checkpoints load)."""
 
     features: int
     stride: int = 1
@@ -257,10 +213,9 @@ def _pad_one(x: jax.Array) -> jax.Array:
 
 def strided_conv4(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """``nn.Conv(…, (4, 4), (2, 2), "SAME")`` without its bias, for even sizes: the padded input's
-    2×2 blocks become channels, so the 4×4 stride-2 convolution is a 2×2 stride-1 one
-    (:func:`conv_valid`, a patch matmul) with the same multiply-adds. On CPU, DreamerV3's encoder
-    and decoder together run 1.65× faster this way than with XLA's convolutions
-    (``benchmarks/dreamer_update.py``; ``benchmarks/RESULTS.md``, DreamerV3)."""
+    2×2 blocks become channels, so the 4×4 stride-2 convolution is a 2×2 stride-1 one with the
+    same multiply-adds, whose gradients XLA computes faster on the CPU than its strided
+    convolution's (``benchmarks/dreamer_update.py``; ``benchmarks/RESULTS.md``, DreamerV3)."""
     channels, features = kernel.shape[2:]
     # kernel[2a + b, 2a' + b'] multiplies block (y + a, y' + a')'s pixel (b, b')
     blocked = kernel.reshape(2, 2, 2, 2, channels, features).transpose(0, 2, 1, 3, 4, 5)

@@ -1,7 +1,8 @@
-"""Process-wide set-up: persistent compile caches and quiet Warp.
+"""Process-wide set-up: XLA's CPU convolutions, persistent compile caches and quiet Warp.
 
-Imported first by ``dva/__init__.py`` so that the caches are configured before JAX compiles
-anything and before Warp is imported (Warp reads ``WARP_CACHE_PATH`` at import time).
+Imported first by ``dva/__init__.py`` so that this runs before JAX starts its CPU client (it
+reads ``XLA_FLAGS`` once), before JAX compiles anything and before Warp is imported (Warp reads
+``WARP_CACHE_PATH`` at import time).
 """
 
 from __future__ import annotations
@@ -13,6 +14,22 @@ from pathlib import Path
 def cache_root() -> Path:
     """Directory for all of dva's caches (``$DVA_CACHE_DIR`` or ``~/.cache/dva``)."""
     return Path(os.environ.get("DVA_CACHE_DIR", Path.home() / ".cache" / "dva"))
+
+
+# XLA (jaxlib 0.10) hands unpadded convolutions to YNNPACK on the CPU, which runs the encoder's
+# 3×3 × 32-channel layers at ≈ 10 GFLOP/s; with those fusions off they go to XLA's Eigen/oneDNN
+# kernels at ≈ 80 (benchmarks/RESULTS.md, "XLA's CPU convolutions"). A CPU-only flag: GPUs ignore it.
+CPU_FLAGS = "--xla_cpu_experimental_ynn_fusion_type="
+
+
+def configure_xla() -> None:
+    """Add :data:`CPU_FLAGS` to ``XLA_FLAGS`` unless the caller already chose a YNN fusion setting.
+
+    Takes effect only if JAX has not started its backends yet (importing ``dva`` first does that).
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_experimental_ynn_fusion_type" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {CPU_FLAGS}".strip()
 
 
 def configure_caches() -> None:
