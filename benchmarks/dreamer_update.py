@@ -1,7 +1,8 @@
 """Seconds per DreamerV3 update (world model, imagination, actor and critic) and per pass of its
 conv encoder + decoder alone, with the 4×4 stride-2 convolutions as 2×2 convolutions over 2×2
 pixel blocks (ours, the default) against XLA's strided and input-dilated convolutions (what Flax's
-``nn.Conv`` / ``nn.ConvTranspose`` run), and the ratio. CPU by default; the same script uses a GPU when JAX sees one.
+``nn.Conv`` / ``nn.ConvTranspose`` run), and the ratio. CPU by default; the same script uses a
+GPU when JAX sees one.
 
     python benchmarks/dreamer_update.py [--task cartpole_balance] [--preset cpu] [--repeats 5]
 """
@@ -88,7 +89,8 @@ def main() -> None:
              f"{times['xla'][key] / times['blocks'][key]:.2f}×")
             for key, label in (("update_s", "one update (s)"), ("conv_s", "encoder + decoder, forward + backward (s)"),
                                ("compile_s", "compile + first run (s)"))]
-    print(markdown_table(["best of the timed runs", "XLA convolutions", "2×2 block convolutions (default)", "speed-up"], rows))
+    print(markdown_table(["best of the timed runs", "XLA convolutions", "2×2 block convolutions (default)",
+                          "speed-up"], rows))
 
 
 if __name__ == "__main__":

@@ -14,9 +14,9 @@ from flax import struct
 
 
 def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    """A VALID, NHWC × HWIO convolution: XLA's own, forward and gradients. On the CPU it runs at
-    ≈ 80 GFLOP/s only with YNNPACK's convolution fusions off, which :mod:`dva.runtime` sees to
-    (at ≈ 10 with them on, slower than the patch matmuls this project used before;
+    """A VALID, NHWC × HWIO convolution: XLA's own, forward and gradients. On the CPU its forward
+    runs at ≈ 110 GFLOP/s only with YNNPACK's fusions off, which :mod:`dva.runtime` sees to (≈ 18
+    with them on, slower than the patch matmuls this project used before;
     ``benchmarks/RESULTS.md``, "XLA's CPU convolutions")."""
     return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID",
                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))

@@ -17,8 +17,8 @@ def cache_root() -> Path:
 
 
 # XLA (jaxlib 0.10) hands unpadded convolutions to YNNPACK on the CPU, which runs the encoder's
-# 3×3 × 32-channel layers at ≈ 10 GFLOP/s; with those fusions off they go to XLA's Eigen/oneDNN
-# kernels at ≈ 80 (benchmarks/RESULTS.md, "XLA's CPU convolutions"). A CPU-only flag: GPUs ignore it.
+# 3×3 × 32-channel layers at ≈ 18 GFLOP/s forward; with YNN's fusions off they run in XLA's Eigen
+# kernels at ≈ 110 (benchmarks/RESULTS.md, "XLA's CPU convolutions"). CPU-only: GPUs ignore it.
 CPU_FLAGS = "--xla_cpu_experimental_ynn_fusion_type="
 
 
