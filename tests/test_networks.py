@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4
-from dva.runtime import CPU_FLAGS, configure_xla
+from dva.runtime import CPU_FLAGS, YNN_FUSION_FLAG, configure_xla
 
 
 class FlaxPixelEncoder(nn.Module):
@@ -41,7 +41,7 @@ def test_pixel_encoder_matches_flax_layers_with_the_same_parameters():
 def test_runtime_turns_off_ynnpack_convolutions_unless_the_user_chose(monkeypatch):
     """XLA's CPU convolutions are fast only with YNNPACK's fusions off (dva.runtime); a user's own
     XLA_FLAGS are kept, and their own YNN setting wins."""
-    assert "xla_cpu_experimental_ynn_fusion_type" in os.environ["XLA_FLAGS"]  # importing dva set it here
+    assert YNN_FUSION_FLAG in os.environ["XLA_FLAGS"]  # importing dva set it here
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
     configure_xla()
     assert os.environ["XLA_FLAGS"] == f"--xla_backend_optimization_level=0 {CPU_FLAGS}"

@@ -19,7 +19,8 @@ def cache_root() -> Path:
 # XLA (jaxlib 0.10) hands unpadded convolutions to YNNPACK on the CPU, which runs the encoder's
 # 3×3 × 32-channel layers at ≈ 18 GFLOP/s forward; with YNN's fusions off they run in XLA's Eigen
 # kernels at ≈ 110 (benchmarks/RESULTS.md, "XLA's CPU convolutions"). CPU-only: GPUs ignore it.
-CPU_FLAGS = "--xla_cpu_experimental_ynn_fusion_type="
+YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
+CPU_FLAGS = f"--{YNN_FUSION_FLAG}="  # an empty list: no YNN fusions
 
 
 def configure_xla() -> None:
@@ -28,7 +29,7 @@ def configure_xla() -> None:
     Takes effect only if JAX has not started its backends yet (importing ``dva`` first does that).
     """
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_experimental_ynn_fusion_type" not in flags:
+    if YNN_FUSION_FLAG not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} {CPU_FLAGS}".strip()
 
 
