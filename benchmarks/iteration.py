@@ -2,7 +2,7 @@
 critic / rendering), plus the pixel encoder's analytic compute bound.
 
     python benchmarks/iteration.py [--task cartpole_swingup] [--algo dva] [--preset cpu]
-                                   [--num-envs N] [--image-size S]
+                                   [--num-envs N] [--image-size S] [--chunk C]
 
 Prints a markdown table. The encoder bound is its arithmetic (forward + backward over all h × N
 frames) divided by the float32 matmul rate this machine reaches; spec §6's PyTorch figure for
@@ -21,6 +21,7 @@ def main() -> None:
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--num-envs", type=int)
     parser.add_argument("--image-size", type=int)
+    parser.add_argument("--chunk", type=int, default=1, help="D.Va's actor_backward_chunk (0: the kept passes)")
     args = parser.parse_args()
 
     from dva.analysis.bench import machine_description, markdown_table
@@ -28,7 +29,7 @@ def main() -> None:
     from dva.analysis.profile import encoder_flops, matmul_flops_per_s
 
     config, times = measure_iteration(args.task, args.algo, args.preset, num_envs=args.num_envs,
-                                      image_size=args.image_size)
+                                      image_size=args.image_size, actor_backward_chunk=args.chunk)
     print(f"{args.algo} on {args.task}, preset {args.preset}: {config.num_envs} envs × {config.horizon} steps"
           + (f", {config.image_size}² × {config.frame_stack} frames" if config.observation == "pixels" else ""))
     print(machine_description())
@@ -45,9 +46,12 @@ def main() -> None:
         images = config.num_envs * config.horizon
         flops = encoder_flops(config.image_size, 3 * config.frame_stack, trunk=config.trunk)
         rate = matmul_flops_per_s()
-        bound = images * (flops["forward"] + flops["backward"]) / rate
+        # Chunks recompute the encoder's forward; the kept backward passes (chunk 0) do not.
+        recomputed = config.actor_backward_chunk > 0
+        bound = images * (flops["forward"] * recomputed + flops["backward"]) / rate
         print(f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
-              f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images; "
+              f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images "
+              f"({'forward + backward: chunks of ' + str(config.actor_backward_chunk) if recomputed else 'backward: kept passes'}); "
               f"measured actor backward {times['actor_backward']:.3f} s = {times['actor_backward'] / bound:.1f}× the bound")
 
 

@@ -48,11 +48,11 @@ def test_cost_ratios_divide_visual_shac_by_dva():
 
 
 def test_analyze_cost_end_to_end(tmp_path, capsys):
-    # Without the chunked variant (one compile less; chunked gradients are checked in test_shac and
-    # its row in test_cost_ratios_divide_visual_shac_by_dva).
-    main(["analyze", "cost", "--tasks", "cartpole_swingup", *TINY, "--chunk", "None", "--out", str(tmp_path)])
+    # Without the kept-backward variant (one compile less; both gradients are checked in test_shac
+    # and a second D.Va row in test_cost_ratios_divide_visual_shac_by_dva).
+    main(["analyze", "cost", "--tasks", "cartpole_swingup", *TINY, "--chunk", "2", "--out", str(tmp_path)])
     costs = read_rows(tmp_path / "cost" / "cost.csv")
-    assert [r["variant"] for r in costs] == ["dva", "shac-pixels"]
+    assert [r["variant"] for r in costs] == ["dva, chunk 2", "shac-pixels"]
     for row in costs:
         assert float(row["backward_s"]) > 0
         # at least the 8 × 4 stacked 24² frames (uint8) the rollout keeps for the backward pass
@@ -60,12 +60,12 @@ def test_analyze_cost_end_to_end(tmp_path, capsys):
     assert "| cartpole_swingup |" in capsys.readouterr().out
     assert iio.imread(tmp_path / "cost" / "cost.png").ndim == 3
     # --no-timing compiles the same gradients from shapes alone: the same memory, no times.
-    memory_only = measure_costs(["cartpole_swingup"], num_envs=4, horizon=8, image_size=24, chunk=None, timing=False)
+    memory_only = measure_costs(["cartpole_swingup"], num_envs=4, horizon=8, image_size=24, chunk=2, timing=False)
     for row, timed_row in zip(memory_only, costs, strict=True):
         assert row["peak_memory_mb"] == pytest.approx(float(timed_row["peak_memory_mb"]), rel=1e-6)
         assert np.isnan(row["backward_s"]) and np.isnan(row["forward_s"])
     _, markdown = write_cost_report(memory_only, tmp_path / "memory_only", "memory only")
-    assert "| cartpole_swingup | dva |" in markdown
+    assert "| cartpole_swingup | dva, chunk 2 |" in markdown
     assert iio.imread(tmp_path / "memory_only" / "cost.png").ndim == 3
 
 

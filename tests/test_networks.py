@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4
+from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4, conv_valid
 from dva.runtime import CPU_FLAGS, YNN_FUSION_FLAG, configure_xla
 
 
@@ -36,6 +36,35 @@ def test_pixel_encoder_matches_flax_layers_with_the_same_parameters():
     np.testing.assert_allclose(ours, reference, rtol=1e-5)
     for got, expected in zip(jax.tree.leaves(ours_grad), jax.tree.leaves(reference_grad)):
         np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+@pytest.mark.parametrize("in_loop", [False, True])
+def test_conv_valid_gradients_match_xla_at_top_level_and_inside_a_scan(stride, in_loop):
+    """``conv_valid``'s own backward (NHWC × HWIO convolutions, fast inside loops) gives XLA's
+    input and kernel gradients: stride 2 over 20 rows leaves the last row unused (its gradient 0),
+    non-square images and channels catch a swapped axis; inside a ``lax.scan`` as the chunked D.Va
+    gradient and visual SHAC's reverse scan run it."""
+    kx, kk, kg = jax.random.split(jax.random.PRNGKey(3), 3)
+    x = jax.random.normal(kx, (2, 3, 20, 17, 5))  # (loop steps, images, H, W, C)
+    kernel = jax.random.normal(kk, (3, 3, 5, 4))
+    reference = lambda x, k: jax.lax.conv_general_dilated(  # noqa: E731
+        x, k, (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    weights = jax.random.normal(kg, (2,) + reference(x[0], kernel).shape)
+
+    def loss(conv):
+        def total(x, k):
+            if in_loop:
+                return jax.lax.scan(lambda acc, xw: (acc + jnp.sum(xw[1] * conv(xw[0], k)), None), 0.0, (x, weights))[0]
+            return sum(jnp.sum(weights[i] * conv(x[i], k)) for i in range(2))
+        return total
+
+    ours = jax.jit(jax.value_and_grad(loss(lambda x, k: conv_valid(x, k, stride)), argnums=(0, 1)))(x, kernel)
+    expected = jax.value_and_grad(loss(reference), argnums=(0, 1))(x, kernel)
+    for got, want in zip(jax.tree.leaves(ours), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+    if stride == 2:
+        assert not np.any(ours[1][0][:, :, -1])  # the row no output reads gets no gradient
 
 
 def test_runtime_turns_off_ynnpack_convolutions_unless_the_user_chose(monkeypatch):

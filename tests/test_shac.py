@@ -19,7 +19,7 @@ HORIZON, NUM_ENVS = 6, 2
 
 def agent(gradient: str) -> SHAC:
     config = SHACConfig(observation="state", gradient=gradient, num_envs=NUM_ENVS, horizon=HORIZON,
-                        actor_hidden=(16,), critic_hidden=(16,), critic_minibatches=2)
+                        actor_hidden=(16,), critic_hidden=(16,), critic_minibatches=2, actor_backward_chunk=0)
     return SHAC(PixelObservations(make_task("cartpole_swingup"), NUM_ENVS), config)
 
 
@@ -148,7 +148,8 @@ def test_td_lambda_targets_hand_computed():
 
 @pytest.fixture(scope="module")
 def batched(setup):
-    """The decoupled fast path's loss and gradient (physics backward for ∂L/∂a, then one batched actor VJP)."""
+    """The decoupled fast path's loss and gradient (physics backward for ∂L/∂a, then the actor's
+    backward passes the rollout kept, step by step)."""
     shac, train, noise = setup
     loss, _, grads = jax.jit(shac.actor_gradient)(train.actor_params, train, noise)
     return loss, grads
@@ -161,17 +162,20 @@ def test_batched_actor_gradient_equals_reverse_mode_through_the_rollout(batched,
     np.testing.assert_allclose(flat(fast), flat(direct), rtol=1e-4, atol=1e-6 * np.abs(flat(direct)).max())
 
 
-def test_chunked_actor_backward_equals_the_batched_one(setup, batched):
-    """Recomputing the actor two steps at a time (less memory) gives the same gradient. (The
-    reshape into chunks is the same for pixel observations; one compile here keeps the suite short.)"""
+@pytest.mark.parametrize("chunk", [1, 2])
+def test_chunked_actor_backward_equals_the_kept_one(setup, batched, chunk):
+    """Recomputing the actor one or two steps at a time (less memory; 1 is the default) gives the
+    same gradient as the rollout's kept backward passes. (The reshape into chunks is the same for
+    pixel observations; small compiles here keep the suite short.)"""
     shac, train, noise = setup
     _, batched = batched
-    chunked_agent = SHAC(shac.env, dataclasses.replace(shac.config, actor_backward_chunk=2))
+    chunked_agent = SHAC(shac.env, dataclasses.replace(shac.config, actor_backward_chunk=chunk))
     _, _, chunked = jax.jit(chunked_agent.actor_gradient)(train.actor_params, train, noise)
     assert np.abs(flat(batched)).max() > 0
     np.testing.assert_allclose(flat(chunked), flat(batched), rtol=1e-5, atol=1e-7 * np.abs(flat(batched)).max())
-    with pytest.raises(ValueError, match="actor_backward_chunk = 4 is not allowed"):
-        dataclasses.replace(shac.config, actor_backward_chunk=4)
+    for bad in (4, -1):
+        with pytest.raises(ValueError, match=f"actor_backward_chunk = {bad} is not allowed"):
+            dataclasses.replace(shac.config, actor_backward_chunk=bad)
 
 
 def test_without_the_critic_the_loss_is_the_windows_discounted_reward(setup, decoupled):

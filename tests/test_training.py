@@ -122,9 +122,11 @@ def test_cpu_preset_gives_pixel_actors_on_legged_robots_a_longer_decay():
 
 def test_configs_from_older_runs_load_under_the_new_field_names():
     config = config_from_dict("shac", {"observation": "state", "gradient": "full", "grad_clip": 2.0,
-                                       "max_grad_norm": 5.0, "iterations": 7, "actor_hidden": [16, 8]})
+                                       "max_grad_norm": 5.0, "iterations": 7, "actor_hidden": [16, 8],
+                                       "actor_backward_chunk": None})
     assert (config.clip_grad_norm, config.abort_grad_norm, config.lr_decay_iterations) == (2.0, 5.0, 7)
     assert config.actor_hidden == (16, 8)
+    assert config.actor_backward_chunk == 0  # None was the kept backward passes; they go on resume
 
 
 def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):

@@ -344,9 +344,12 @@ class CostAnalysis:
     num_envs: int = 32
     horizon: int = 32
     image_size: int = 84
-    chunk: int | None = 1
-    """Also measure D.Va with its actor backward in chunks of this many steps (None: skip; 1 is
-    the form whose memory is 4–5× below visual SHAC's, benchmarks/RESULTS.md)."""
+    chunk: int = 1
+    """D.Va's actor backward in chunks of this many steps (``--shac.actor-backward-chunk``; 1, the
+    default, has the least memory)."""
+    kept: bool = False
+    """Also measure D.Va reusing the backward passes its rollout kept (chunk 0: no recomputed
+    forward, every step's activations in memory)."""
     timing: bool = True
     """Time the forward and backward passes; --no-timing: memory only, from compiling."""
     seed: int = 0
@@ -358,7 +361,8 @@ class CostAnalysis:
         from dva.rendering import check_image_size
 
         check_image_size(self.image_size, self.image_size)  # fail before any compile
-        rows = measure_costs(self.tasks, self.num_envs, self.horizon, self.image_size, self.seed, self.chunk, self.timing)
+        rows = measure_costs(self.tasks, self.num_envs, self.horizon, self.image_size, self.seed, self.chunk, self.kept,
+                             self.timing)
         title = (f"one actor gradient, {self.num_envs} envs × {self.horizon} steps, {self.image_size}² pixels; "
                  f"{machine_description()}")
         print_report(*write_cost_report(rows, self.out / "cost", title))

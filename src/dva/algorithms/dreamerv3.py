@@ -436,11 +436,8 @@ class DreamerV3:
 
         state, (finished, done) = jax.lax.scan(collect_step, state,
                                                jax.random.split(collect_key, self.config.collect_steps))
-        metrics = []
-        for update_key in jax.random.split(update_key, self.config.updates):  # unrolled: convolutions in a
-            state, step_metrics = self.update(state, update_key)             # loop are slow on CPU
-            metrics.append(step_metrics)
-        metrics = {name: jnp.mean(jnp.stack([m[name] for m in metrics])) for name in metrics[0]}
+        state, metrics = jax.lax.scan(self.update, state, jax.random.split(update_key, self.config.updates))
+        metrics = {name: jnp.mean(value) for name, value in metrics.items()}
         metrics.update(healthy=jnp.all(jnp.array([jnp.isfinite(value) for value in metrics.values()])),
                        finished_return_sum=finished.sum(), finished_episodes=done.sum())
         return state.replace(key=key, iteration=state.iteration + 1), metrics

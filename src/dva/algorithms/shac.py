@@ -60,12 +60,13 @@ class SHACConfig:
     """The actor's state-independent log σ of the pre-tanh action at initialisation (learned after;
     SHAC's −1). Larger: more exploration noise at the start, so that a pixel actor sees frames that
     differ from step to step before its policy settles into a posture."""
-    actor_backward_chunk: int | None = None
-    """Decoupled gradients only: None differentiates the actor (the encoder above all) for all
-    h × N observations in one batch, from the activations the rollout kept (the fastest on CPU);
-    c recomputes the actor's forward for c steps at a time inside a scan and adds up their
-    gradients — the same gradient, with one chunk's activations in memory instead of h steps'
-    (for memory-bound GPUs; ``dva analyze cost`` measures both)."""
+    actor_backward_chunk: int = 1
+    """Decoupled gradients only: c ≥ 1 differentiates the actor (the encoder above all) c steps
+    (c·N observations) at a time inside a scan, recomputing their forward pass, and adds up the
+    gradients — one chunk's activations in memory; 0 reuses the backward passes the rollout kept
+    for every step instead (no recomputed forward, all h steps' activations in memory; for
+    hardware where the recompute costs more than it saves). Chunks of 1 step have the least
+    memory (``benchmarks/RESULTS.md``, "Convolution gradients inside loops")."""
     use_critic: bool = True
     """False: the paper's value ablation — the window's end bootstraps nothing (V = 0) and no
     critic is trained."""
@@ -86,9 +87,11 @@ class SHACConfig:
             raise ValueError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.gradient not in ("decoupled", "full"):
             raise ValueError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
+        if self.actor_backward_chunk is None:  # run.json of earlier versions: the kept passes
+            object.__setattr__(self, "actor_backward_chunk", 0)
         chunk = self.actor_backward_chunk
-        if chunk is not None and (chunk < 1 or self.horizon % chunk):
-            raise ValueError(f"actor_backward_chunk = {chunk!r} is not allowed; use None or a divisor of "
+        if not isinstance(chunk, int) or chunk < 0 or (chunk and self.horizon % chunk):
+            raise ValueError(f"actor_backward_chunk = {chunk!r} is not allowed; use 0 (the kept backward passes) or a divisor of "
                              f"horizon = {self.horizon}")
         if (self.num_envs * self.horizon) % self.critic_minibatches:
             raise ValueError(f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
@@ -211,7 +214,7 @@ class SHAC:
             if cfg.gradient == "decoupled":
                 observation = jax.lax.stop_gradient(observation)
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
-            if cfg.gradient == "decoupled" and cfg.actor_backward_chunk is None:  # kept for actor_gradient
+            if cfg.gradient == "decoupled" and cfg.actor_backward_chunk == 0:  # kept for actor_backward
                 pre_tanh, actor_vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)
             else:
                 pre_tanh, actor_vjp = self.pre_tanh_action(actor_params, observation, eps), None
@@ -256,10 +259,7 @@ class SHAC:
         Decoupled: by Theorem 1 the gradient is ``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` with the open-loop
         action gradient ``∇_{a_t} L``. So the scan differentiates only the physics (with respect
         to action offsets), and the actor — the pixel encoder above all — is differentiated
-        afterwards with the backward passes the rollout kept, all h steps in one batch, instead of
-        step by step inside the reverse scan (and without recomputing its forward pass).
-        With ``actor_backward_chunk`` the actor is differentiated ``c`` steps at a time instead,
-        recomputing their forward pass (see :class:`SHACConfig`).
+        afterwards (:meth:`actor_backward`) instead of inside the reverse scan through the physics.
         Full: plain reverse mode through everything.
         """
         cfg = self.config
@@ -269,22 +269,33 @@ class SHAC:
         offsets = jnp.zeros_like(noise)
         (loss, aux), action_grad = jax.value_and_grad(
             lambda w: self.rollout(actor_params, train, noise, w), has_aux=True)(offsets)
-        taken = aux[-1]
-        if cfg.actor_backward_chunk is None:
-            per_step = jax.vmap(lambda vjp, g: vjp(g)[0])(taken["actor_vjp"], action_grad)
-            return loss, aux, jax.tree.map(lambda g: g.sum(0), per_step)
+        return loss, aux, self.actor_backward(actor_params, aux[-1], noise, action_grad)
 
-        def chunks(x: jax.Array) -> jax.Array:  # (h, N, ...) → (h / c, c·N, ...)
-            return x.reshape((-1, cfg.actor_backward_chunk * x.shape[1]) + x.shape[2:])
+    def actor_backward(self, actor_params: dict, taken: dict, noise: jax.Array, action_grad: jax.Array) -> dict:
+        """``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` from what the rollout took (``taken``) and the open-loop
+        action gradient ``(h, N, A)``: a scan over chunks of ``actor_backward_chunk`` steps, each
+        recomputing the actor's forward, or over the backward passes the rollout kept (0) — one
+        chunk's (step's) workspace at a time. (Convolution gradients run at full speed inside a
+        loop only as :func:`dva.networks.conv_valid` writes them.)"""
+        cfg = self.config
+        if cfg.actor_backward_chunk == 0:
+            def step_gradient(step):
+                vjp, grad = step
+                return vjp(grad)[0]
 
-        def add_chunk(total, chunk):
-            observation, eps, grad = chunk
-            _, vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)
-            return jax.tree.map(jnp.add, total, vjp(grad)[0]), None
+            steps = (taken["actor_vjp"], action_grad)
+        else:
+            def chunks(x: jax.Array) -> jax.Array:  # (h, N, ...) → (h / c, c·N, ...)
+                return x.reshape((-1, cfg.actor_backward_chunk * x.shape[1]) + x.shape[2:])
 
-        grads, _ = jax.lax.scan(add_chunk, jax.tree.map(jnp.zeros_like, actor_params),
-                                (chunks(taken["observations"]), chunks(noise), chunks(action_grad)))
-        return loss, aux, grads
+            def step_gradient(chunk):
+                observation, eps, grad = chunk
+                return jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)[1](grad)[0]
+
+            steps = (chunks(taken["observations"]), chunks(noise), chunks(action_grad))
+        grads, _ = jax.lax.scan(lambda total, step: (jax.tree.map(jnp.add, total, step_gradient(step)), None),
+                                jax.tree.map(jnp.zeros_like, actor_params), steps)
+        return grads
 
     # ---- the critic ---------------------------------------------------------------------------
     def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):

@@ -2,7 +2,7 @@
 
 Both compute the same policy gradient's inputs from the same rollout; visual SHAC differentiates
 through the (differentiable) renderer and every step's encoder inside the reverse scan, D.Va
-only through the physics, then runs the encoder backward once over all h × N frames. Measured
+only through the physics, then through the encoder a chunk of steps at a time. Measured
 per task in one process: backward seconds (gradient minus forward, steady state) and the memory
 XLA allocates for the gradient computation (arguments, outputs and temporaries; on CPU the
 process's resident set would mix all tasks measured before, and the compiler's own).
@@ -65,22 +65,24 @@ def available_memory_bytes() -> float:
 
 
 def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image_size: int = 84,
-                  seed: int = 0, chunk: int | None = 1, timing: bool = True) -> list[dict]:
-    """One row per task and variant: D.Va (its actor backward batched over all frames), D.Va with
-    ``actor_backward_chunk = chunk`` (unless None) and visual SHAC — same networks, envs, horizon,
-    images. Without ``timing`` only the memory, from compiling (minutes instead of an hour)."""
-    variants = [("dva", None)] + ([("dva", chunk)] if chunk is not None else []) + [(COMPARED[1], None)]
+                  seed: int = 0, chunk: int = 1, kept: bool = False, timing: bool = True) -> list[dict]:
+    """One row per task and variant: D.Va with ``actor_backward_chunk = chunk``, with ``kept`` also
+    D.Va reusing the rollout's kept backward passes (chunk 0), and visual SHAC — same networks,
+    envs, horizon, images. Without ``timing`` only the memory, from compiling (minutes instead of
+    an hour)."""
+    variants = [("dva", chunk, f"dva, chunk {chunk}")] + ([("dva", 0, "dva, kept")] if kept else [])
+    variants.append((COMPARED[1], None, COMPARED[1]))
     rows = []
     for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
-        for algo, algo_chunk in variants:
-            overrides = {} if algo_chunk is None else {"actor_backward_chunk": algo_chunk}
+        for algo, algo_chunk, variant in variants:
+            overrides = {"actor_backward_chunk": algo_chunk} if algo == COMPARED[0] else {}
             config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size,
                                  **overrides)
             agent = build_agent(task, algo, config)
             init = jax.jit(agent.init) if timing else lambda key: jax.eval_shape(agent.init, key)
             state = init(jax.random.PRNGKey(seed))
-            variant = algo if algo_chunk is None else f"{algo}, chunk {algo_chunk}"
-            rows.append({"task": task, "algo": algo, "variant": variant, "actor_backward_chunk": algo_chunk or "",
+            rows.append({"task": task, "algo": algo, "variant": variant,
+                         "actor_backward_chunk": "" if algo_chunk is None else algo_chunk,  # 0: kept
                          **gradient_cost(agent, state, timing)})
     return rows
 

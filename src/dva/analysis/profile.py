@@ -22,8 +22,9 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
     ``actor_forward``: the actor alone on the rollout's h × N observations, one batch per step.
     ``rollout_backward``: reverse pass of the rollout (for D.Va: the physics only, giving the
     open-loop action gradient), i.e. value-and-gradient minus the forward.
-    ``actor_backward``: D.Va's actor backward over all h × N observations, from the
-    backward passes the rollout kept (0 for 'full').
+    ``actor_backward``: D.Va's :meth:`~dva.algorithms.shac.SHAC.actor_backward` over the h × N
+    observations as configured (chunks with their forward recomputed, or the rollout's kept
+    backward passes; 0 for 'full').
     ``critic``: TD-λ targets and all critic minibatch steps. ``render``: rendering alone, h
     batches of N frames (part of the rollout forward); ``render_with_actor``: see
     :func:`render_beside_actor`. ``iteration``: the whole jitted step.
@@ -50,8 +51,7 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
             lambda w: agent.rollout(p, s, n, w), has_aux=True)(w))
         _, physics_time, ((_, aux), grad) = timed(action_grad, params, state, noise, offsets)
         times["rollout_backward"] = physics_time - times["rollout_forward"]
-        actor_backward = jax.jit(lambda vjps, g: jax.vmap(lambda vjp, g: vjp(g)[0])(vjps, g))
-        times["actor_backward"] = timed(actor_backward, aux[-1]["actor_vjp"], grad)[1]
+        times["actor_backward"] = timed(jax.jit(agent.actor_backward), params, aux[-1], noise, grad)[1]
     critic = jax.jit(agent.critic_update)
     times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
     if agent.env.renderer is not None:
