@@ -25,7 +25,8 @@ def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     dimension orders, which its CPU backend runs 20× (input) to 185× (kernel) slower inside a
     loop body — a ``lax.scan`` over chunks, a reverse scan through the rollout, a scan of updates
     — than at the top level (jax-ml/jax#12868); written as NHWC × HWIO forward convolutions they
-    run at full speed in both (``benchmarks/RESULTS.md``, "Convolution gradients inside loops")."""
+    run at full speed in both (``benchmarks/RESULTS.md``, "Convolution gradients inside loops").
+    A ``custom_vjp``: reverse mode only (``jax.jvp`` through it raises)."""
     return _conv(x, kernel, stride)
 
 
