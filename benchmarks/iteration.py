@@ -5,8 +5,10 @@ critic / rendering), plus the pixel encoder's analytic compute bound.
                                    [--num-envs N] [--image-size S] [--chunk C]
 
 Prints a markdown table. The encoder bound is its arithmetic (forward + backward over all h × N
-frames) divided by the float32 matmul rate this machine reaches; spec §6's PyTorch figure for
-2048 images at 84² (64 envs × 32 steps) is 7.65 s on a comparable 2-core CPU.
+frames) divided by the float32 matmul rate this machine reaches. For pixel actors it also times
+spec §6's reference measurement — the encoder + trunk's forward and parameter gradient over 512
+images of 84² × 9 — next to PyTorch's 1.55 s on a comparable 2-core CPU, and states the actor
+backward's rate per FLOP against PyTorch's on that measurement.
 """
 
 from __future__ import annotations
@@ -26,7 +28,8 @@ def main() -> None:
 
     from dva.analysis.bench import machine_description, markdown_table
     from dva.analysis.breakdown import measure_iteration
-    from dva.analysis.profile import encoder_flops, matmul_flops_per_s
+    from dva.analysis.profile import (PYTORCH_ENCODER_GRADIENT, encoder_flops, encoder_gradient_seconds,
+                                      matmul_flops_per_s)
 
     config, times = measure_iteration(args.task, args.algo, args.preset, num_envs=args.num_envs,
                                       image_size=args.image_size, actor_backward_chunk=args.chunk)
@@ -53,6 +56,16 @@ def main() -> None:
               f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images "
               f"({'forward + backward: chunks of ' + str(config.actor_backward_chunk) if recomputed else 'backward: kept passes'}); "
               f"measured actor backward {times['actor_backward']:.3f} s = {times['actor_backward'] / bound:.1f}× the bound")
+        reference = PYTORCH_ENCODER_GRADIENT
+        ours = encoder_gradient_seconds(reference["images"], reference["image_size"], reference["channels_in"])
+        reference_flops = encoder_flops(reference["image_size"], reference["channels_in"])
+        reference_rate = reference["images"] * sum(reference_flops.values()) / reference["seconds"]
+        actor_rate = bound * rate / times["actor_backward"]
+        print(f"spec §6's measurement (encoder + trunk, forward + parameter gradient, {reference['images']} × "
+              f"{reference['image_size']}² × {reference['channels_in']}): {ours:.3f} s here vs PyTorch's "
+              f"{reference['seconds']} s = {ours / reference['seconds']:.2f}×; actor backward "
+              f"{actor_rate / 1e9:.0f} GFLOP/s vs PyTorch's {reference_rate / 1e9:.0f} on that measurement "
+              f"= {reference_rate / actor_rate:.2f}× its time per FLOP")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dva.analysis.cost import measure_costs, ratios, write_cost_report
-from dva.analysis.profile import per_million_steps
+from dva.analysis.profile import encoder_flops, per_million_steps
 from dva.cli import main
 
 TINY = ["--num-envs", "4", "--horizon", "8", "--image-size", "24"]
@@ -30,6 +30,16 @@ def test_per_million_steps_splits_the_iteration_by_hand():
                                    "other": 350.0})  # 1.6 − 1.25 s
     fused = per_million_steps({**times, "iteration": 1.0}, num_envs=10, horizon=100)
     assert fused["other"] == 0.0  # faster than its parts: nothing left over, never negative
+
+
+def test_encoder_flops_count_the_drqv2_encoder_by_hand():
+    """48² × 9 → 23² (stride 2), 21², 19², 17² × 32 channels, then 17² × 32 → 64: 2 × multiply-adds."""
+    conv = [2 * 23**2 * 32 * 9 * 9, 2 * 21**2 * 32 * 9 * 32, 2 * 19**2 * 32 * 9 * 32, 2 * 17**2 * 32 * 9 * 32]
+    projection = 2 * 17**2 * 32 * 64
+    flops = encoder_flops(48, 9, trunk=64)
+    assert flops["forward"] == sum(conv) + projection == 24_035_392
+    # weight gradients of every layer, input gradients of all but the first (pixels need none)
+    assert flops["backward"] == sum(conv) + sum(conv[1:]) + 2 * projection == 45_328_448
 
 
 def test_cost_ratios_divide_visual_shac_by_dva():
