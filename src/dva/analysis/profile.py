@@ -2,9 +2,7 @@
 
 :func:`iteration_breakdown` times each part of :meth:`SHAC.iteration` as its own jitted function
 (steady state, compile excluded). :func:`encoder_flops` counts the DrQ-v2 encoder's arithmetic so
-its measured time can be compared with the machine's matrix-multiply rate (the compute bound), and
-:func:`encoder_gradient_seconds` times spec §6's measurement, whose PyTorch figure is
-:data:`PYTORCH_ENCODER_GRADIENT`.
+its measured time can be compared with the machine's matrix-multiply rate (the compute bound).
 """
 
 from __future__ import annotations
@@ -14,11 +12,6 @@ import jax.numpy as jnp
 
 from dva.algorithms.shac import SHAC, TrainState
 from dva.analysis.bench import timed
-from dva.networks import PixelEncoder
-
-# Spec §6: the DrQ-v2 encoder + 64-wide trunk, forward + backward w.r.t. its parameters, on
-# (images, size, channels) uint8 pixels, PyTorch 2.13 on a comparable 2-core CPU: seconds.
-PYTORCH_ENCODER_GRADIENT = {"images": 512, "image_size": 84, "channels_in": 9, "seconds": 1.55}
 
 
 def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
@@ -102,23 +95,6 @@ def encoder_flops(image_size: int, channels_in: int, channels: int = 32, trunk: 
     forward = sum(conv) + projection
     backward = sum(conv) + projection + sum(conv[1:]) + projection
     return {"forward": float(forward), "backward": float(backward)}
-
-
-def encoder_gradient_seconds(images: int, image_size: int, channels_in: int, trunk: int = 64) -> float:
-    """Best steady-state seconds of the DrQ-v2 encoder + trunk projection's forward and its
-    gradient w.r.t. the parameters over ``images`` random uint8 images, jitted at the top level:
-    spec §6's measurement (its PyTorch figure: :data:`PYTORCH_ENCODER_GRADIENT`)."""
-
-    def features(params, pixels):
-        encoder, projection = params
-        return PixelEncoder().apply(encoder, pixels) @ projection
-
-    key = jax.random.PRNGKey(0)
-    pixels = jax.random.randint(key, (images, image_size, image_size, channels_in), 0, 256).astype(jnp.uint8)
-    encoder = PixelEncoder().init(key, pixels[:1])
-    projection = 0.01 * jax.random.normal(key, (PixelEncoder().apply(encoder, pixels[:1]).shape[-1], trunk))
-    gradient = jax.jit(jax.grad(lambda params, pixels: jnp.sum(jnp.tanh(features(params, pixels)))))
-    return timed(gradient, (encoder, projection), pixels)[1]
 
 
 def matmul_flops_per_s(size: int = 2048) -> float:
