@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from dva.algorithms import make_config
 from dva.algorithms.dagger import DAgger
@@ -74,3 +75,21 @@ def test_dagger_student_rollouts_are_still_labelled_and_the_student_learns_the_l
     teacher_driven = dagger(stop_bc_loss=1e9)
     _, metrics = jax.jit(teacher_driven.iteration)(jax.jit(teacher_driven.init)(jax.random.PRNGKey(0)))
     assert float(metrics["fresh_bc_loss"]) < 1e9 and not bool(metrics["stop"])
+
+
+def test_dagger_stops_on_the_averaged_fresh_loss_not_on_one_dip():
+    agent = dagger(teacher_fraction=0.0, stop_bc_loss=1e9, stop_loss_decay=0.9)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    # Past iteration 0 the rule reads the EMA: an average still far above the threshold keeps the
+    # run going although this iteration's fresh loss is below it.
+    state = state.replace(iteration=jnp.asarray(5, jnp.int32), fresh_loss_average=jnp.asarray(1e11))
+    after, metrics = jax.jit(agent.iteration)(state)
+    fresh = float(metrics["fresh_bc_loss"])
+    assert fresh < 1e9 and not bool(metrics["stop"])
+    np.testing.assert_allclose(float(metrics["fresh_bc_loss_average"]), 0.9 * 1e11 + 0.1 * fresh, rtol=1e-6)
+    np.testing.assert_allclose(float(after.fresh_loss_average), float(metrics["fresh_bc_loss_average"]))
+    # Once the average has come down, the same rule ends the run.
+    _, metrics = jax.jit(agent.iteration)(state.replace(fresh_loss_average=jnp.asarray(1e8)))
+    assert bool(metrics["stop"])
+    with pytest.raises(ValueError, match="stop_loss_decay = 1.0"):
+        dagger(stop_loss_decay=1.0)

@@ -8,8 +8,11 @@ adds the (frames, action) pairs to a replay of at most ``replay_size`` and takes
 ``updates_per_iteration`` Adam steps on the behaviour-cloning loss ``‖tanh μ_student(o) − a*‖²``
 over sampled batches. Training stops once the student drives (the teacher's share is at most
 ``stop_teacher_fraction``) and the cloning loss on the states just visited, measured before they
-are trained on, is below ``stop_bc_loss`` — on the replay's own samples the loss is near 0 after
-the first iteration (a few hundred teacher-driven frames), so it cannot be the criterion.
+are trained on and averaged over iterations (an EMA with ``stop_loss_decay``), is below
+``stop_bc_loss`` — on the replay's own samples the loss is near 0 after the first iteration (a few
+hundred teacher-driven frames), so it cannot be the criterion, and one iteration's fresh loss is
+too noisy: on Cart-pole it swings between 0.1 and 1 from one iteration to the next, and a single
+dip below 0.1 stopped a student at 462 whose peers went on to ≈ 1900 (``benchmarks/RESULTS.md``).
 
 The teacher is a finished ``dva train --algo shac`` run (``teacher``); without one, ``dva train
 --algo dagger`` trains it first (``teacher_minutes``) and the student's logged wall-clock and
@@ -50,9 +53,14 @@ class DAggerConfig:
     teacher_decay: float = 0.9  # … times this per iteration
     stop_bc_loss: float = 0.1
     stop_teacher_fraction: float = 0.1  # the stop rule applies once the teacher acts this rarely
+    stop_loss_decay: float = 0.9  # EMA of the fresh cloning loss the stop rule reads (≈ 10 iterations)
     trunk: int = 64
     actor_hidden: tuple[int, ...] = (64, 64)
     iterations: int = 2000  # the run's length when no budget is given
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.stop_loss_decay < 1.0:
+            raise ValueError(f"stop_loss_decay = {self.stop_loss_decay!r} is not allowed; use a number in [0, 1)")
 
 
 class DAggerState(struct.PyTreeNode):
@@ -63,6 +71,7 @@ class DAggerState(struct.PyTreeNode):
     env: EnvState
     replay: object  # flashbax item buffer state: {"pixels", "action"}
     episode_return: jax.Array
+    fresh_loss_average: jax.Array  # EMA of the fresh cloning loss (the stop rule's input)
     key: jax.Array
     iteration: jax.Array
 
@@ -73,7 +82,7 @@ class DAgger:
     ``teacher`` is the teacher's agent and ``teacher_policy`` its :meth:`policy` parameters.
     """
 
-    metric_names = ("bc_loss", "fresh_bc_loss", "teacher_fraction")
+    metric_names = ("bc_loss", "fresh_bc_loss", "fresh_bc_loss_average", "teacher_fraction")
 
     def __init__(self, env: PixelObservations, config: DAggerConfig, teacher, teacher_policy,
                  teacher_cost: tuple[float, int] = (0.0, 0)) -> None:
@@ -103,7 +112,7 @@ class DAgger:
         example = {"pixels": env.pixels[0], "action": jnp.zeros(self.task.action_dim)}
         return DAggerState(student=student, opt_state=self.optimizer.init(student), env=env,
                            replay=self.replay.init(example), episode_return=jnp.zeros(self.config.num_envs),
-                           key=key, iteration=jnp.zeros((), jnp.int32))
+                           fresh_loss_average=jnp.zeros(()), key=key, iteration=jnp.zeros((), jnp.int32))
 
     def teacher_action(self, observation: Observation) -> jax.Array:
         return jax.lax.stop_gradient(self.teacher.act(self.teacher_policy, observation))
@@ -135,6 +144,8 @@ class DAgger:
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
         replay = self.replay.add(state.replay, {"pixels": flat(pixels), "action": flat(labels)})
         fresh_bc_loss = self.bc_loss(state.student, flat(pixels), flat(labels))  # held out: not yet trained on
+        average = jnp.where(state.iteration == 0, fresh_bc_loss,  # the EMA starts at the first value
+                            cfg.stop_loss_decay * state.fresh_loss_average + (1.0 - cfg.stop_loss_decay) * fresh_bc_loss)
 
         def update(carry, key):
             student, opt_state = carry
@@ -146,12 +157,12 @@ class DAgger:
         (student, opt_state), losses = jax.lax.scan(update, (state.student, state.opt_state),
                                                     jax.random.split(update_key, cfg.updates_per_iteration))
         bc_loss = losses[-1]
-        metrics = {"bc_loss": bc_loss, "fresh_bc_loss": fresh_bc_loss, "teacher_fraction": fraction,
-                   "healthy": jnp.isfinite(bc_loss),
-                   "stop": (fresh_bc_loss < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction),
+        metrics = {"bc_loss": bc_loss, "fresh_bc_loss": fresh_bc_loss, "fresh_bc_loss_average": average,
+                   "teacher_fraction": fraction, "healthy": jnp.isfinite(bc_loss),
+                   "stop": (average < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction),
                    "finished_return_sum": finished.sum(), "finished_episodes": done.sum()}
-        return state.replace(student=student, opt_state=opt_state, env=env, replay=replay,
-                             episode_return=episode_return, key=key, iteration=state.iteration + 1), metrics
+        return state.replace(student=student, opt_state=opt_state, env=env, replay=replay, episode_return=episode_return,
+                             fresh_loss_average=average, key=key, iteration=state.iteration + 1), metrics
 
     # ---- the agent's policy ------------------------------------------------------------------
     def policy(self, state: DAggerState) -> dict:
