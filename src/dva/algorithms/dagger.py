@@ -11,7 +11,7 @@ over sampled batches. Training stops once the student drives (the teacher's shar
 are trained on and averaged over iterations (an EMA with ``stop_loss_decay``), is below
 ``stop_bc_loss`` — on the replay's own samples the loss is near 0 after the first iteration (a few
 hundred teacher-driven frames), so it cannot be the criterion, and one iteration's fresh loss is
-too noisy: on Cart-pole it swings between 0.1 and 1 from one iteration to the next, and a single
+too noisy: on Cart-pole it swings between 0.1 and 2 from one iteration to the next, and a single
 dip below 0.1 stopped a student at 462 whose peers went on to ≈ 1900 (``benchmarks/RESULTS.md``).
 
 The teacher is a finished ``dva train --algo shac`` run (``teacher``); without one, ``dva train
