@@ -1,7 +1,7 @@
 """Offline: from a DreamerV3 checkpoint, keep updating on the fixed replay (no new data) and watch
 whether the reward head can fit the replayed rewards (loss in nats, correlation of predictions)."""
 import sys, time
-import jax, jax.numpy as jnp, numpy as np
+import jax, numpy as np
 from dva.training import load_run
 from dva.algorithms.dreamerv3 import features
 from dva.algorithms.dreamer_math import twohot_decode
