@@ -1,3 +1,8 @@
+"""Why a DreamerV3 Cart-pole balance policy scores what it does: replays a run's latest checkpoint
+(one episode per env) and prints when the cart leaves the rail and when the pole falls (|θ| > 0.5).
+
+    python benchmarks/results/dreamerv3_balance/failure_mode.py RUN_DIR
+"""
 import sys, numpy as np
 from dva.training import evaluate_run
 from dva.tasks import make_task
