@@ -44,10 +44,15 @@ def test_penalty_force_on_a_sliding_sphere_hand_computed():
     params = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=0.9)
     mx = mjx.put_model(model)
     data = mjx.make_data(mx).replace(qvel=jnp.array([2.0, 0.0, -0.5, 0.0, 0.0, 0.0]))
-    data = mjx.fwd_velocity(mx, mjx.fwd_position(mx, data))
-    _, depth, _ = contact_state(mx, data, points)
+
+    @jax.jit  # one compile: op by op, MJX's kinematics cost ≈ 500 small ones (half a minute)
+    def depth_and_forces(data):
+        data = mjx.fwd_velocity(mx, mjx.fwd_position(mx, data))
+        no_limits = (np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int))
+        return contact_state(mx, data, points)[1], penalty_forces(mx, data, points, params, *no_limits)
+
+    depth, qfrc = depth_and_forces(data)
     assert float(depth[0]) == pytest.approx(0.01, abs=1e-6)
-    qfrc = penalty_forces(mx, data, points, params, *[np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int)])
     normal = 2e4 * 0.01 + 1e3 * 0.01 * 0.5  # spring + damping while sinking
     friction = -min(1e3 * 2.0, 0.9 * 2e4 * 0.01)  # Coulomb-capped: 180 N against the sliding
     np.testing.assert_allclose(qfrc[:3], [friction, 0.0, normal], rtol=1e-4)
@@ -65,8 +70,13 @@ def test_joint_limit_spring_and_damping():
     qvel = np.zeros(task.mj_model.nv)
     qvel[dofs[foot]] = 2.0  # … still turning outwards
     data = task._data0.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
-    qfrc = np.asarray(penalty_forces(task.model, data, task.contact_points, task.penalty_contact, *task.limits))
+
+    @jax.jit  # one compile, not one per operation
+    def forces(data):
+        data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
+        return penalty_forces(task.model, data, task.contact_points, task.penalty_contact, *task.limits)
+
+    qfrc = np.asarray(forces(data))
     params = task.penalty_contact
     assert qfrc[dofs[foot]] == pytest.approx(-params.limit_ke * 0.1 - params.limit_kd * 2.0, rel=1e-4)
     np.testing.assert_allclose(np.delete(qfrc, dofs[foot]), 0.0, atol=1e-6)  # nothing else pushes
@@ -79,15 +89,19 @@ def test_falling_robot_never_gains_energy(name):
     task = make_task(name)
     state = task.reset(jax.random.PRNGKey(1), 2)
 
+    # One compiled function, the start's energy included: evaluated op by op outside jit,
+    # mechanical_energy alone took 40 s on the Humanoid (every primitive compiled on its own).
     @jax.jit
     def energies(data):
+        energy = jax.vmap(lambda x: mechanical_energy(task, x))
+
         def step(d, _):
             d = jax.vmap(task.physics_step)(d, jnp.zeros((2, task.action_dim)))
-            return d, jax.vmap(lambda x: mechanical_energy(task, x))(d)
-        return jax.lax.scan(step, data, None, length=150)[1]
+            return d, energy(d)
+        return jnp.concatenate([energy(data)[None], jax.lax.scan(step, data, None, length=150)[1]])
 
-    initial = np.asarray(jax.vmap(lambda x: mechanical_energy(task, x))(state.data))
-    energy = np.concatenate([initial[None], np.asarray(energies(state.data))])
+    energy = np.asarray(energies(state.data))
+    initial = energy[0]
     assert np.all(np.isfinite(energy))
     rise = energy[1:] - np.minimum.accumulate(energy, axis=0)[:-1]
     assert np.all(rise <= 0.005 * initial), f"{name}: energy rose by {rise.max():.3g} J (start {initial})"

@@ -56,11 +56,13 @@ def test_theorem1_decoupled_gradient_is_behaviour_cloning_gradient(setup, decoup
     observations, actions = taken["observations"], taken["actions"]
     improved = actions + beta * grad_actions  # ā = a + β ∇_a J
 
-    def bc_loss(params):
+    @jax.jit  # compiled: op by op its gradient costs ≈ 100 small compiles
+    @jax.grad
+    def grad_bc_loss(params):
         mean, log_std = jax.vmap(lambda o: shac.actor.apply(params, o))(observations)
         return jnp.sum((mean + jnp.exp(log_std) * noise - improved) ** 2) / (2 * beta)
 
-    minus_grad_bc = jax.tree.map(jnp.negative, jax.grad(bc_loss)(train.actor_params))
+    minus_grad_bc = jax.tree.map(jnp.negative, grad_bc_loss(train.actor_params))
     np.testing.assert_allclose(flat(grad_theta), flat(minus_grad_bc), rtol=2e-3, atol=1e-4 * np.abs(flat(grad_theta)).max())  # float32
     assert np.abs(flat(grad_theta)).max() > 0
 
@@ -71,11 +73,16 @@ def test_full_gradient_is_decoupled_plus_control_regularisation(setup, decoupled
     _, _, dpg, action_grad = decoupled  # ∂L/∂a_t with the observations cut: the open-loop action gradient
     full = agent("full")
     params = train.actor_params
-    apg = jax.grad(lambda p: full.rollout(p, train, noise)[0])(params)
-    observations_of = lambda p: full.rollout(p, train, noise)[1][-1]["observations"]
-    observations, observation_vjp = jax.vjp(observations_of, params)  # closed-loop do_t/dθ
-    _, actor_vjp = jax.vjp(lambda o: full.pre_tanh_action(params, o, None), observations)  # ∂a_t/∂o_t
-    control_regularisation = observation_vjp(actor_vjp(action_grad)[0])[0]
+    apg = jax.jit(jax.grad(lambda p: full.rollout(p, train, noise)[0]))(params)
+
+    @jax.jit  # one compile: op by op the two VJPs cost ≈ 500 small ones (40 s on 2 cores)
+    def control_regularisation_of(params, action_grad):
+        observations_of = lambda p: full.rollout(p, train, noise)[1][-1]["observations"]
+        observations, observation_vjp = jax.vjp(observations_of, params)  # closed-loop do_t/dθ
+        _, actor_vjp = jax.vjp(lambda o: full.pre_tanh_action(params, o, None), observations)  # ∂a_t/∂o_t
+        return observation_vjp(actor_vjp(action_grad)[0])[0]
+
+    control_regularisation = control_regularisation_of(params, action_grad)
     scale = np.abs(flat(apg)).max()
     assert np.abs(flat(control_regularisation)).max() > 1e-3 * scale  # not trivially zero
     np.testing.assert_allclose(flat(apg), flat(dpg) + flat(control_regularisation), rtol=2e-3, atol=1e-5 * scale)
@@ -90,8 +97,9 @@ def test_decoupled_rollout_cuts_the_observation_path(setup):
         return shac.rollout(train.actor_params, train.replace(env=env), noise)[1][-1]["actions"][0].sum()
 
     offset = jnp.zeros_like(train.env.obs)
-    assert float(jnp.abs(jax.grad(lambda w: first_action(agent("decoupled"), w))(offset)).max()) == 0.0
-    assert float(jnp.abs(jax.grad(lambda w: first_action(agent("full"), w))(offset)).max()) > 0.0
+    gradient = lambda name: jax.jit(jax.grad(lambda w: first_action(agent(name), w)))(offset)  # compiled: 1, not ≈ 50, compiles
+    assert float(jnp.abs(gradient("decoupled")).max()) == 0.0
+    assert float(jnp.abs(gradient("full")).max()) > 0.0
 
 
 def test_per_env_gradient_clipping_rescales_only_large_cotangents():
@@ -117,7 +125,7 @@ def test_state_gradient_clipping_in_the_rollout(setup, decoupled):
 
     def action_grad(clip):
         clipped = SHAC(shac.env, dataclasses.replace(shac.config, state_grad_clip=clip))
-        return jax.value_and_grad(lambda w: clipped.rollout(train.actor_params, train, noise, w)[0])(
+        return jax.jit(jax.value_and_grad(lambda w: clipped.rollout(train.actor_params, train, noise, w)[0]))(
             jnp.zeros_like(noise))
 
     exact_loss, _, _, exact = decoupled  # state_grad_clip None: exact
