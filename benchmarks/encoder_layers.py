@@ -1,0 +1,72 @@
+"""Where the pixel encoder's time goes, layer by layer: the forward, kernel-gradient and
+input-gradient convolutions of the DrQ-v2 encoder at one D.Va actor-backward chunk (N images),
+each jitted alone, against this machine's float32 matmul rate.
+
+    python benchmarks/encoder_layers.py [--images 16] [--image-size 48] [--channels-in 9]
+
+Prints a markdown table (ms and GFLOP/s per convolution) and the sum over one chunk against the
+compute bound (the first layer's input gradient is not counted: the pixels need none).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def best_seconds(fn, *args, repeats: int = 20) -> float:
+    import jax
+
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--images", type=int, default=16, help="images per chunk (the CPU preset's 16 envs)")
+    parser.add_argument("--image-size", type=int, default=48)
+    parser.add_argument("--channels-in", type=int, default=9, help="3 × stacked frames")
+    args = parser.parse_args()
+
+    import jax
+
+    from dva.analysis.bench import machine_description, markdown_table
+    from dva.analysis.profile import matmul_flops_per_s
+    from dva.networks import conv_valid
+
+    rate = matmul_flops_per_s()
+    key = jax.random.PRNGKey(0)
+    size, channels_in, rows, total_s, total_flops = args.image_size, args.channels_in, [], 0.0, 0.0
+    for layer, stride in enumerate((2, 1, 1, 1)):  # DrQ-v2's encoder: 3×3, 32 channels
+        out = (size - 3) // stride + 1
+        x = jax.random.normal(key, (args.images, size, size, channels_in))
+        kernel = 0.1 * jax.random.normal(key, (3, 3, channels_in, 32))
+        out_grad = jax.random.normal(key, (args.images, out, out, 32))
+        flops = 2.0 * args.images * out * out * 32 * 9 * channels_in
+        # each gradient alone: XLA drops the unused forward and the other gradient
+        parts = {"forward": best_seconds(jax.jit(lambda x, k: conv_valid(x, k, stride)), x, kernel),
+                 "kernel gradient": best_seconds(jax.jit(
+                     lambda x, k, g: jax.vjp(lambda k: conv_valid(x, k, stride), k)[1](g)[0]), x, kernel, out_grad),
+                 "input gradient": best_seconds(jax.jit(
+                     lambda x, k, g: jax.vjp(lambda x: conv_valid(x, k, stride), x)[1](g)[0]), x, kernel, out_grad)}
+        for part, seconds in parts.items():
+            counted = layer > 0 or part != "input gradient"
+            total_s, total_flops = total_s + seconds * counted, total_flops + flops * counted
+            rows.append((f"{layer} ({size}² × {channels_in} → {out}² × 32, stride {stride})", part,
+                         f"{seconds * 1e3:.2f}", f"{flops / seconds / 1e9:.0f}", "" if counted else "not needed"))
+        size, channels_in = out, 32
+    print(f"{args.images} images of {args.image_size}² × {args.channels_in}; {machine_description()}")
+    print(markdown_table(["layer", "convolution", "ms", "GFLOP/s", ""], rows))
+    bound = total_flops / rate
+    print(f"\none chunk: {total_s * 1e3:.2f} ms for {total_flops / 1e6:.0f} MFLOP = {total_flops / total_s / 1e9:.0f} "
+          f"GFLOP/s; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound * 1e3:.2f} ms, "
+          f"{total_s / bound:.2f}× the bound")
+
+
+if __name__ == "__main__":
+    main()
