@@ -11,19 +11,6 @@ compute bound (the first layer's input gradient is not counted: the pixels need 
 from __future__ import annotations
 
 import argparse
-import time
-
-
-def best_seconds(fn, *args, repeats: int = 20) -> float:
-    import jax
-
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main() -> None:
@@ -35,11 +22,12 @@ def main() -> None:
 
     import jax
 
-    from dva.analysis.bench import machine_description, markdown_table
+    from dva.analysis.bench import machine_description, markdown_table, timed
     from dva.analysis.profile import matmul_flops_per_s
     from dva.networks import conv_valid
 
     rate = matmul_flops_per_s()
+    best_seconds = lambda fn, *a: timed(fn, *a, repeats=20)[1]
     key = jax.random.PRNGKey(0)
     size, channels_in, rows, total_s, total_flops = args.image_size, args.channels_in, [], 0.0, 0.0
     for layer, stride in enumerate((2, 1, 1, 1)):  # DrQ-v2's encoder: 3×3, 32 channels

@@ -1,11 +1,8 @@
-import time, jax, jax.numpy as jnp
+import jax, jax.numpy as jnp
 import dva  # noqa
+from dva.analysis.bench import timed
 from dva.networks import conv_valid
-def best(f, *a, reps=30):
-    jax.block_until_ready(f(*a)); ts=[]
-    for _ in range(reps):
-        t=time.perf_counter(); jax.block_until_ready(f(*a)); ts.append(time.perf_counter()-t)
-    return min(ts)
+best = lambda f, *a: timed(f, *a, repeats=30)[1]
 key = jax.random.PRNGKey(0)
 for size, cin, stride in ((48, 9, 2), (23, 32, 1), (21, 32, 1), (19, 32, 1)):
     out = (size-3)//stride+1

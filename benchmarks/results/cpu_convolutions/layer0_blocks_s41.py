@@ -1,11 +1,8 @@
-import time, jax, jax.numpy as jnp
+import jax, jax.numpy as jnp
 import dva  # noqa
+from dva.analysis.bench import timed
 from dva.networks import conv_valid
-def best(f, *a, reps=30):
-    jax.block_until_ready(f(*a)); ts=[]
-    for _ in range(reps):
-        t=time.perf_counter(); jax.block_until_ready(f(*a)); ts.append(time.perf_counter()-t)
-    return min(ts)
+best = lambda f, *a: timed(f, *a, repeats=30)[1]
 key = jax.random.PRNGKey(0)
 x = jax.random.normal(key, (16, 48, 48, 9)); k = 0.1*jax.random.normal(key, (3,3,9,32)); g = jax.random.normal(key, (16,23,23,32))
 def blocks(x):  # 2×2 pixel blocks as channels: (N, 24, 24, 36)
