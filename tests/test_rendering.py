@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -67,6 +69,25 @@ def test_tracking_camera_sees_robot_and_pose_changes_image(name):
     for mask in masks:
         assert 16 < np.nonzero(mask)[1].mean() < 48
     assert (masks[0] != masks[1]).sum() > 10  # bent joints change the silhouette
+
+
+def test_a_dropped_renderer_lets_its_queued_render_finish():
+    """MJX looks the render context up when the render runs: a renderer dropped while its render
+    is still queued (as in ``jax.jit(PixelRenderer(...).__call__)(qpos)``) must not take it along."""
+    task = make_task("cartpole_swingup")
+
+    def render_after_a_delay(qpos):
+        renderer = PixelRenderer(task, num_envs=2, width=16)
+
+        def delayed(qpos, matrix):
+            busy = jax.lax.fori_loop(0, 20, lambda _, m: jnp.tanh(m @ m), matrix)  # runs before the render
+            return renderer(qpos + 0.0 * busy[0, 0])
+
+        return jax.jit(delayed)(qpos, 0.5 * jnp.eye(1000))
+
+    pixels = render_after_a_delay(jnp.zeros((2, task.mj_model.nq)))  # returns before the render has run
+    gc.collect()  # the renderer and its jitted function are gone now
+    assert np.asarray(pixels).shape == (2, 16, 16, 3)
 
 
 def test_bad_image_size_and_batch_are_rejected():

@@ -24,8 +24,7 @@ def mid_rollout_qpos(task):
 def test_image_close_to_the_warp_renderer(name, record_property):
     task = make_task(name)
     qpos = mid_rollout_qpos(task)
-    renderer = PixelRenderer(task, NUM_ENVS, 64)  # alive until its pixels are read: the render runs asynchronously
-    warp = np.asarray(jax.jit(renderer.__call__)(qpos)).astype(float)
+    warp = np.asarray(jax.jit(PixelRenderer(task, NUM_ENVS, 64).__call__)(qpos)).astype(float)
     soft = np.asarray(jax.jit(SoftRenderer(task, NUM_ENVS, 64).__call__)(qpos))
     assert soft.shape == warp.shape and np.isfinite(soft).all()
     difference = float(np.abs(warp - soft).mean())

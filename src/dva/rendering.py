@@ -49,7 +49,8 @@ class PixelRenderer:
     """Renders ``num_envs`` copies of a task from its pixel camera as uint8 RGB (and depth).
 
     The Warp render context has a fixed batch size, so one renderer serves one ``num_envs``.
-    Keep the renderer object alive while jitted functions that call it are in use.
+    Keep the renderer object alive while jitted functions that call it are in use; renders
+    already queued when it is dropped still finish (see ``__del__``).
     """
 
     differentiable = False  # pixels carry no gradient to qpos (D.Va needs none)
@@ -83,6 +84,16 @@ class PixelRenderer:
             samples_per_pixel=samples_per_pixel, background_color=(*SKY_COLOR, 1.0),
         )
         self._camera_slot = 0  # only the pixel camera is active in the context
+
+    def __del__(self) -> None:
+        # MJX looks the render context up by id when a queued render runs, and the context's
+        # buffers go with this object. Renders are side-effecting calls, which JAX tracks: wait
+        # for those still in flight, e.g. after ``jax.jit(PixelRenderer(...).__call__)(qpos)``.
+        if getattr(self, "_context", None) is not None:
+            try:
+                jax.effects_barrier()
+            except Exception:  # noqa: BLE001 - a failed computation reports itself where its result is read
+                pass
 
     def __call__(self, qpos: jax.Array) -> jax.Array | tuple[jax.Array, jax.Array]:
         """Render ``qpos`` of shape ``(num_envs, nq)``.
