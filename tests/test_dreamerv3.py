@@ -16,6 +16,7 @@ import optax
 import pytest
 
 from dva.algorithms import make_config
+from dva.algorithms.dreamer_math import twohot_decode
 from dva.training import load_run, train
 
 # 4 × 8 replayed steps per update at ratio 16 over 2 envs: collect 1 step, update once. No action
@@ -106,33 +107,100 @@ def test_replayed_sequences_restart_the_latent_at_episode_starts(dreamer_run):
     assert np.allclose(np.asarray(stoch).sum(-1), 1.0)  # one-hot categoricals
 
 
-def test_a_backprop_actor_step_raises_the_imagined_return(dreamer_run):
-    """The default actor gradient for continuous actions is the λ-return's own gradient through the
-    frozen model and critic: with the entropy bonus off, a small step along it raises the return
-    imagined with the same samples; REINFORCE's gradient on the same trajectories differs."""
-    _, agent, state = load_run(dreamer_run)
-    assert agent.config.actor_gradient == "backprop"
-    model, critic = state.params["model"], state.params["critic"]
-    steps = agent.replay.sample_sequences(state.replay, jax.random.PRNGKey(0))
-    _, ((deter, stoch), _) = jax.jit(agent.world_model_loss)(model, steps, jax.random.PRNGKey(1))
-    deter, stoch = deter.reshape(-1, deter.shape[-1]), stoch.reshape((-1,) + stoch.shape[2:])
+class ImaginedActorLoss:
+    """The entropy-free actor loss on one batch of imagination starts of the test run, with its
+    value, aux and gradient (in the actor and the world model) from one compile per variant."""
 
-    def imagined_loss_and_grad(config):
-        variant = copy.copy(agent)
-        variant.config = config
-        loss = lambda actor: variant.actor_loss(actor, model, critic, state.return_scale, deter, stoch,
-                                                jax.random.PRNGKey(2))[0]
-        return jax.jit(loss), jax.jit(jax.grad(loss))
+    def __init__(self, run_dir) -> None:
+        _, self.agent, self.state = load_run(run_dir)
+        steps = self.agent.replay.sample_sequences(self.state.replay, jax.random.PRNGKey(0))
+        _, ((deter, stoch), _) = jax.jit(self.agent.world_model_loss)(self.state.params["model"], steps,
+                                                                        jax.random.PRNGKey(1))
+        self.deter, self.stoch = deter.reshape(-1, deter.shape[-1]), stoch.reshape((-1,) + stoch.shape[2:])
+        self.scale, self.key = jnp.asarray(3.0), jax.random.PRNGKey(2)
+        self._compiled = {}
 
-    loss, grad = imagined_loss_and_grad(dataclasses.replace(agent.config, entropy=0.0))
-    actor = state.params["actor"]
-    backprop_grad = grad(actor)
+    def variant(self, actor_gradient: str = "backprop"):
+        agent = copy.copy(self.agent)
+        agent.config = dataclasses.replace(self.agent.config, entropy=0.0, actor_gradient=actor_gradient)
+        return agent
+
+    def __call__(self, actor, model, actor_gradient: str = "backprop"):
+        """``((loss, aux), (actor gradient, model gradient))``."""
+        if actor_gradient not in self._compiled:
+            agent = self.variant(actor_gradient)
+            loss = lambda a, m: agent.actor_loss(a, m, self.state.params["critic"], self.scale, self.deter,
+                                                 self.stoch, self.key)
+            self._compiled[actor_gradient] = jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
+        return self._compiled[actor_gradient](actor, model)
+
+
+@pytest.fixture(scope="module")
+def imagined_actor_loss(dreamer_run):
+    return ImaginedActorLoss(dreamer_run)
+
+
+def test_a_backprop_actor_step_raises_the_imagined_advantage(imagined_actor_loss):
+    """The default actor gradient for continuous actions is the normalised advantage's own gradient
+    through the frozen model and critic: with the entropy bonus off, a small step along it raises
+    the advantage imagined with the same samples; REINFORCE's gradient on the same trajectories differs."""
+    assert imagined_actor_loss.agent.config.actor_gradient == "backprop"
+    actor, model = imagined_actor_loss.state.params["actor"], imagined_actor_loss.state.params["model"]
+    (loss, _), (backprop_grad, _) = imagined_actor_loss(actor, model)
     norm = float(optax.tree.norm(backprop_grad))
     assert np.isfinite(norm) and norm > 0.0
     stepped = jax.tree.map(lambda p, g: p - 1e-3 * g / norm, actor, backprop_grad)
-    assert float(loss(stepped)) < float(loss(actor))  # the imagined return (its negative: the loss) rose
+    (stepped_loss, _), _ = imagined_actor_loss(stepped, model)
+    assert float(stepped_loss) < float(loss)  # the imagined advantage (its negative: the loss) rose
 
-    _, reinforce = imagined_loss_and_grad(dataclasses.replace(agent.config, entropy=0.0, actor_gradient="reinforce"))
-    reinforce_grad = reinforce(actor)
+    _, (reinforce_grad, _) = imagined_actor_loss(actor, model, "reinforce")
     cosine = optax.tree.vdot(backprop_grad, reinforce_grad) / (norm * float(optax.tree.norm(reinforce_grad)))
     assert abs(float(cosine)) < 0.99
+
+
+def test_imagined_actions_carry_no_gradient_to_the_states_they_were_chosen_in(imagined_actor_loss):
+    """As in the reference implementation, the actor reads imagined states through a stop-gradient:
+    an action's gradient is its effect on the future, with later actions held, so the imagined
+    actions do not depend (differentiably) on where imagination started while the states do."""
+    agent, params = imagined_actor_loss.agent, imagined_actor_loss.state.params
+    stoch = imagined_actor_loss.stoch[:2]
+    imagine = lambda start: agent.imagine(params["model"], params["actor"], start, stoch, jax.random.PRNGKey(2))
+    feats_jacobian, actions_jacobian = jax.jit(jax.jacrev(imagine))(imagined_actor_loss.deter[:2])
+    assert float(jnp.abs(feats_jacobian[1:]).max()) > 1e-3  # later states do depend on the start
+    assert float(jnp.abs(actions_jacobian).max()) == 0.0
+
+
+def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuation_mode(imagined_actor_loss):
+    """The actor's loss by hand from the imagined trajectory: λ-returns of the predicted rewards and
+    the continuation's mode (1 where its logit is > 0), minus the critic's values, over max(1, S),
+    weighted by the chance of reaching each step. Being a mode, the continuation carries no
+    gradient: doubling the continuation head's logits leaves the actor's gradient as it was."""
+    agent, params = imagined_actor_loss.agent, imagined_actor_loss.state.params
+    cfg, model, critic, actor = agent.config, params["model"], params["critic"], params["actor"]
+    (loss, (_, returns, weight, new_scale, _)), (actor_grad, _) = imagined_actor_loss(actor, model)
+
+    feats, _ = agent.imagine(model, actor, imagined_actor_loss.deter, imagined_actor_loss.stoch, imagined_actor_loss.key)
+    reward = np.asarray(twohot_decode(agent.reward_head.apply(model["reward"], feats[1:]), agent.bins))
+    cont = np.asarray(agent.cont_head.apply(model["cont"], feats[1:])[..., 0] > 0.0, np.float32)
+    value = np.asarray(twohot_decode(agent.critic.apply(critic, feats), agent.bins))
+    expected_returns, following = np.zeros_like(reward), value[-1]
+    for t in reversed(range(cfg.horizon)):  # R_t = r_t + γ c_t ((1 − λ) v_{t+1} + λ R_{t+1})
+        following = reward[t] + cfg.gamma * cont[t] * ((1 - cfg.lam) * value[t + 1] + cfg.lam * following)
+        expected_returns[t] = following
+    expected_weight = np.cumprod(np.concatenate([np.ones_like(cont[:1]), cont[:-1]]), axis=0)
+    old_scale = float(imagined_actor_loss.scale)
+    expected_scale = cfg.return_decay * old_scale + (1 - cfg.return_decay) * (
+        np.percentile(expected_returns, 95) - np.percentile(expected_returns, 5))
+    advantage = (expected_returns - value[:-1]) / max(1.0, expected_scale)
+    np.testing.assert_allclose(returns, expected_returns, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(weight, expected_weight)
+    np.testing.assert_allclose(new_scale, expected_scale, rtol=1e-4)
+    np.testing.assert_allclose(loss, -np.mean(expected_weight * advantage), rtol=1e-4, atol=1e-6)
+
+    output_layer = max((name for name in model["cont"]["params"] if name.startswith("Dense")),
+                       key=lambda name: int(name.split("_")[-1]))
+    sharper = jax.tree.map(lambda x: x, model)
+    sharper["cont"]["params"][output_layer] = jax.tree.map(lambda x: 2.0 * x, model["cont"]["params"][output_layer])
+    _, (sharper_grad, _) = imagined_actor_loss(actor, sharper)
+    for before, after in zip(jax.tree.leaves(actor_grad), jax.tree.leaves(sharper_grad)):
+        np.testing.assert_allclose(before, after, rtol=1e-5, atol=1e-8)

@@ -9,14 +9,14 @@ steps per policy step):
   image reconstruction (squared error summed over pixels) + two-hot symlog reward + continuation
   (Bernoulli) + 0.5 · dynamics KL + 0.1 · representation KL, each KL with 1 nat free;
 * **imagination**: from every posterior state, ``horizon`` steps of the prior with actions
-  sampled from the actor, the model frozen;
-* **critic**: two-hot symlog regression on the λ-returns of the imagined rewards and
-  continuations, plus a regulariser towards its EMA (``critic_ema``);
-* **actor**: the λ-return divided by ``max(1, S)``, S the EMA of the returns' 5th–95th percentile
-  range, maximised by backpropagating through the imagined trajectory (the frozen model, the
-  reward and continuation heads and the critic) — the 2023 paper's gradient for continuous
-  actions — or, with ``actor_gradient="reinforce"``, REINFORCE on the advantage ``(R − v) /
-  max(1, S)``; plus an entropy bonus.
+  sampled from the actor, which reads each state through a stop-gradient, the model frozen;
+* **critic**: two-hot symlog regression on the λ-returns of the imagined rewards and the
+  continuation head's mode (1 or 0), plus a regulariser towards its EMA (``critic_ema``);
+* **actor**: the advantage ``(R − v) / max(1, S)``, S the EMA of the returns' 5th–95th
+  percentile range, maximised by backpropagating through the imagined trajectory (the frozen
+  model, the reward head and the critic) — the 2023 reference's gradient for continuous actions —
+  or, with ``actor_gradient="reinforce"``, by REINFORCE on the same advantage; plus an entropy
+  bonus.
 
 Simplified against the reference implementation (documented, the method kept): the RSSM's
 initial state is zeros rather than learned; a GRU with LayerNorm on its input rather than the
@@ -318,7 +318,9 @@ class DreamerV3:
             deter, stoch = carry
             action_key, stoch_key = jax.random.split(key_t)
             feature = features(deter, stoch)
-            mean, std = self.action_distribution(actor, feature)
+            # the actor reads the state without gradient (as the reference does): an action's
+            # gradient is its effect on the future through the model, with later actions held
+            mean, std = self.action_distribution(actor, jax.lax.stop_gradient(feature))
             action = mean + std * jax.random.normal(action_key, mean.shape)
             deter = self.transition(model, deter, stoch, jnp.clip(action, -1.0, 1.0))
             stoch = sample_onehot(self.prior(model, deter), stoch_key)
@@ -335,16 +337,17 @@ class DreamerV3:
         cfg = self.config
         feats, actions = self.imagine(model, actor, deter, stoch, key)
         reward = twohot_decode(self.reward_head.apply(model["reward"], feats[1:]), self.bins)
-        cont = jax.nn.sigmoid(self.cont_head.apply(model["cont"], feats[1:])[..., 0])
+        # the continuation's mode, 1 or 0 (the reference's): no gradient, so the actor cannot raise
+        # its return by nudging a confident continuation probability that the values multiply
+        cont = (self.cont_head.apply(model["cont"], feats[1:])[..., 0] > 0.0).astype(reward.dtype)
         value = twohot_decode(self.critic.apply(critic, feats), self.bins)
         returns = lambda_returns(reward, value, cont, cfg.gamma, cfg.lam)  # (H, M)
-        weight = jax.lax.stop_gradient(  # the probability that the trajectory reached step t
-            jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0))
+        weight = jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0)  # step t reached
         scale = update_return_scale(return_scale, jax.lax.stop_gradient(returns), cfg.return_decay)
         feats, actions = jax.lax.stop_gradient(feats), jax.lax.stop_gradient(actions)
         mean, std = self.action_distribution(actor, feats[:-1])
-        if cfg.actor_gradient == "backprop":  # the return's own gradient, through the model
-            objective = returns / jnp.maximum(1.0, scale)
+        if cfg.actor_gradient == "backprop":  # the advantage's own gradient, through the model
+            objective = normalized_advantage(returns, value[:-1], scale)
         else:  # REINFORCE: the log-probability of the sampled actions times the advantage
             log_prob = jnp.sum(-0.5 * ((actions - mean) / std) ** 2 - jnp.log(std) - 0.5 * jnp.log(2 * jnp.pi), -1)
             objective = jax.lax.stop_gradient(normalized_advantage(returns, value[:-1], scale)) * log_prob
