@@ -109,7 +109,7 @@ def test_replayed_sequences_restart_the_latent_at_episode_starts(dreamer_run):
 
 class ImaginedActorLoss:
     """The entropy-free actor loss on one batch of imagination starts of the test run, with its
-    value, aux and gradient (in the actor and the world model) from one compile per variant."""
+    value, aux and gradient in the actor, from one compile per actor gradient."""
 
     def __init__(self, run_dir) -> None:
         _, self.agent, self.state = load_run(run_dir)
@@ -120,18 +120,14 @@ class ImaginedActorLoss:
         self.scale, self.key = jnp.asarray(3.0), jax.random.PRNGKey(2)
         self._compiled = {}
 
-    def variant(self, actor_gradient: str = "backprop"):
-        agent = copy.copy(self.agent)
-        agent.config = dataclasses.replace(self.agent.config, entropy=0.0, actor_gradient=actor_gradient)
-        return agent
-
     def __call__(self, actor, model, actor_gradient: str = "backprop"):
-        """``((loss, aux), (actor gradient, model gradient))``."""
+        """``((loss, aux), actor gradient)`` with the world model ``model``."""
         if actor_gradient not in self._compiled:
-            agent = self.variant(actor_gradient)
+            agent = copy.copy(self.agent)
+            agent.config = dataclasses.replace(self.agent.config, entropy=0.0, actor_gradient=actor_gradient)
             loss = lambda a, m: agent.actor_loss(a, m, self.state.params["critic"], self.scale, self.deter,
                                                  self.stoch, self.key)
-            self._compiled[actor_gradient] = jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
+            self._compiled[actor_gradient] = jax.jit(jax.value_and_grad(loss, has_aux=True))
         return self._compiled[actor_gradient](actor, model)
 
 
@@ -146,14 +142,14 @@ def test_a_backprop_actor_step_raises_the_imagined_advantage(imagined_actor_loss
     the advantage imagined with the same samples; REINFORCE's gradient on the same trajectories differs."""
     assert imagined_actor_loss.agent.config.actor_gradient == "backprop"
     actor, model = imagined_actor_loss.state.params["actor"], imagined_actor_loss.state.params["model"]
-    (loss, _), (backprop_grad, _) = imagined_actor_loss(actor, model)
+    (loss, _), backprop_grad = imagined_actor_loss(actor, model)
     norm = float(optax.tree.norm(backprop_grad))
     assert np.isfinite(norm) and norm > 0.0
     stepped = jax.tree.map(lambda p, g: p - 1e-3 * g / norm, actor, backprop_grad)
     (stepped_loss, _), _ = imagined_actor_loss(stepped, model)
     assert float(stepped_loss) < float(loss)  # the imagined advantage (its negative: the loss) rose
 
-    _, (reinforce_grad, _) = imagined_actor_loss(actor, model, "reinforce")
+    _, reinforce_grad = imagined_actor_loss(actor, model, "reinforce")
     cosine = optax.tree.vdot(backprop_grad, reinforce_grad) / (norm * float(optax.tree.norm(reinforce_grad)))
     assert abs(float(cosine)) < 0.99
 
@@ -177,7 +173,7 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     gradient: doubling the continuation head's logits leaves the actor's gradient as it was."""
     agent, params = imagined_actor_loss.agent, imagined_actor_loss.state.params
     cfg, model, critic, actor = agent.config, params["model"], params["critic"], params["actor"]
-    (loss, (_, returns, weight, new_scale, _)), (actor_grad, _) = imagined_actor_loss(actor, model)
+    (loss, (_, returns, weight, new_scale, _)), actor_grad = imagined_actor_loss(actor, model)
 
     feats, _ = agent.imagine(model, actor, imagined_actor_loss.deter, imagined_actor_loss.stoch, imagined_actor_loss.key)
     reward = np.asarray(twohot_decode(agent.reward_head.apply(model["reward"], feats[1:]), agent.bins))
@@ -201,6 +197,6 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
                        key=lambda name: int(name.split("_")[-1]))
     sharper = jax.tree.map(lambda x: x, model)
     sharper["cont"]["params"][output_layer] = jax.tree.map(lambda x: 2.0 * x, model["cont"]["params"][output_layer])
-    _, (sharper_grad, _) = imagined_actor_loss(actor, sharper)
+    _, sharper_grad = imagined_actor_loss(actor, sharper)
     for before, after in zip(jax.tree.leaves(actor_grad), jax.tree.leaves(sharper_grad)):
         np.testing.assert_allclose(before, after, rtol=1e-5, atol=1e-8)
