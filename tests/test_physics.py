@@ -11,7 +11,10 @@ import pytest
 from mujoco import mjx
 
 from dva.tasks import make_task
-from dva.tasks.physics import PenaltyContact, contact_state, floor_contact_points, mechanical_energy, penalty_forces
+from dva.tasks.physics import (
+    PenaltyContact, contact_state, floor_contact_points, joint_forces, mechanical_energy, penalty_forces, penalty_step,
+    point_forces_to_joints, point_velocities,
+)
 
 LEGGED = ["hopper", "cheetah", "ant", "humanoid", "quadruped"]
 
@@ -25,10 +28,36 @@ def test_contact_points_are_capsule_end_spheres():
     foot_points = points.local[points.body == foot]
     np.testing.assert_allclose(sorted(foot_points[:, 0]), [-0.13, 0.26], atol=1e-6)
     np.testing.assert_allclose(points.radius[points.body == foot], 0.06)
-    # The Humanoid touches the floor with its feet only (its model's explicit pairs).
+    # Every geom of the Humanoid touches the floor, as in the paper's simulator: 16 capsules' end
+    # spheres and 3 spheres (head, hands), on all 13 bodies.
     humanoid = make_task("humanoid")
-    names = {mujoco.mj_id2name(humanoid.mj_model, mujoco.mjtObj.mjOBJ_BODY, b) for b in humanoid.contact_points.body}
-    assert names == {"foot_left", "foot_right"}
+    assert len(humanoid.contact_points.body) == 2 * 16 + 3
+    assert len(set(humanoid.contact_points.body)) == humanoid.mj_model.nbody - 1
+
+
+def test_point_velocities_and_forces_match_mujocos_jacobians():
+    """The contact points' velocities and their forces' generalised forces, computed from the
+    bodies' spatial velocities and the dofs' motion axes, equal J·q̇ and Σ Jᵀf with MJX's own
+    Jacobian of every point (Humanoid, a random pose and velocity, random forces)."""
+    task = make_task("humanoid")
+    keys = jax.random.split(jax.random.PRNGKey(4), 3)
+    qpos, qvel = task.initial_state(keys[0])
+    data = task._data0.replace(qpos=qpos, qvel=qvel + jax.random.normal(keys[1], qvel.shape))
+    points = task.contact_points
+    force = jax.random.normal(keys[2], (len(points.body), 3))
+
+    @jax.jit
+    def both(data):
+        data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
+        position, _ = contact_state(data, points)
+        jacobian = jax.vmap(lambda p, b: mjx.jac(task.model, data, p, b)[0])(position, jnp.asarray(points.body))
+        ours = point_velocities(task.model, data, points, position), point_forces_to_joints(task.model, data, points, position, force)
+        return ours, (jnp.einsum("pvi,v->pi", jacobian, data.qvel), jnp.einsum("pvi,pi->v", jacobian, force))
+
+    (velocity, qfrc), (velocity_ref, qfrc_ref) = both(data)
+    np.testing.assert_allclose(velocity, velocity_ref, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(qfrc, qfrc_ref, rtol=1e-4, atol=1e-4)
+    assert float(jnp.abs(qfrc_ref).max()) > 1.0
 
 
 def test_penalty_force_on_a_sliding_sphere_hand_computed():
@@ -48,8 +77,8 @@ def test_penalty_force_on_a_sliding_sphere_hand_computed():
     @jax.jit  # one compile: op by op, MJX's kinematics cost ≈ 500 small ones (half a minute)
     def depth_and_forces(data):
         data = mjx.fwd_velocity(mx, mjx.fwd_position(mx, data))
-        no_limits = (np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int))
-        return contact_state(mx, data, points)[1], penalty_forces(mx, data, points, params, *no_limits)
+        no_joints = joint_forces(model, params.limit_kd)  # a free joint only: no joint forces
+        return contact_state(data, points)[1], penalty_forces(mx, data, points, params, no_joints)
 
     depth, qfrc = depth_and_forces(data)
     assert float(depth[0]) == pytest.approx(0.01, abs=1e-6)
@@ -62,24 +91,70 @@ def test_penalty_force_on_a_sliding_sphere_hand_computed():
 
 def test_joint_limit_spring_and_damping():
     task = make_task("hopper")
-    dofs, ranges, qpos_index = task.limits
-    foot = int(np.flatnonzero(np.isclose(ranges[:, 1], np.deg2rad(45)))[0])  # the foot: ±45°
+    joints = task.joints
+    foot = int(np.flatnonzero(np.isclose(joints.limit_range[:, 1], np.deg2rad(45)))[0])  # the foot: ±45°
+    foot_dof = joints.limit_dof[foot]
     qpos = np.array(task.mj_model.qpos0)
     qpos[1] = 5.0  # in the air: no contact forces
-    qpos[qpos_index[foot]] = ranges[foot, 1] + 0.1  # 0.1 rad past its upper limit …
+    qpos[joints.limit_qpos[foot]] = joints.limit_range[foot, 1] + 0.1  # 0.1 rad past its upper limit …
     qvel = np.zeros(task.mj_model.nv)
-    qvel[dofs[foot]] = 2.0  # … still turning outwards
+    qvel[foot_dof] = 2.0  # … still turning outwards
     data = task._data0.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
 
     @jax.jit  # one compile, not one per operation
     def forces(data):
         data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
-        return penalty_forces(task.model, data, task.contact_points, task.penalty_contact, *task.limits)
+        return penalty_forces(task.model, data, task.contact_points, task.penalty_contact, joints)
 
     qfrc = np.asarray(forces(data))
-    params = task.penalty_contact
-    assert qfrc[dofs[foot]] == pytest.approx(-params.limit_ke * 0.1 - params.limit_kd * 2.0, rel=1e-4)
-    np.testing.assert_allclose(np.delete(qfrc, dofs[foot]), 0.0, atol=1e-6)  # nothing else pushes
+    # The hopper's joints: damping 2 of their own + 10 (dflex's limit_kd, on at all times).
+    assert qfrc[foot_dof] == pytest.approx(-1e3 * 0.1 - (2.0 + 10.0) * 2.0, rel=1e-4)
+    np.testing.assert_allclose(np.delete(qfrc, foot_dof), 0.0, atol=1e-6)  # nothing else pushes
+
+
+def test_joint_springs_and_always_on_damping_hand_computed():
+    """Humanoid in the air, inside every joint range: each joint feels its own spring towards 0
+    and its own damping plus 10 N·m·s/rad (dflex's rule), hand-computed from the MJCF's numbers."""
+    task = make_task("humanoid")
+    names = ["abdomen_z", "right_knee", "left_elbow"]
+    # (stiffness, damping) from assets/humanoid.xml: the abdomen's class, the default, the small joints'.
+    expected = {"abdomen_z": (20.0, 5.0 + 10.0), "right_knee": (5.0, 0.1 + 10.0), "left_elbow": (2.0, 1.0 + 10.0)}
+    qpos = np.array(task.mj_model.qpos0)
+    qpos[2] = 5.0
+    qvel = np.zeros(task.mj_model.nv)
+    for name, (angle, speed) in zip(names, [(0.3, 1.5), (-0.5, -2.0), (0.2, 0.7)]):
+        joint = task.mj_model.joint(name)
+        qpos[joint.qposadr[0]], qvel[joint.dofadr[0]] = angle, speed
+    data = task._data0.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+    qfrc = np.asarray(jax.jit(lambda d: penalty_forces(task.model, mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, d)),
+                                                       task.contact_points, task.penalty_contact, task.joints))(data))
+    for name, (angle, speed) in zip(names, [(0.3, 1.5), (-0.5, -2.0), (0.2, 0.7)]):
+        stiffness, damping = expected[name]
+        assert qfrc[task.mj_model.joint(name).dofadr[0]] == pytest.approx(-stiffness * angle - damping * speed, rel=1e-5)
+    others = np.setdiff1d(np.arange(task.mj_model.nv), [task.mj_model.joint(n).dofadr[0] for n in names])
+    np.testing.assert_allclose(qfrc[others], 0.0, atol=1e-5)
+
+
+def test_one_substep_equals_mujocos_own_step():
+    """With one substep the mass matrix factored once per control step is the current one, so the
+    penalty step must equal MJX's full pipeline (position, velocity, actuation, acceleration,
+    Euler) under the same explicit forces — in contact, float64."""
+    with jax.enable_x64(True):
+        task = type(make_task("hopper"))()
+        state = task.reset(jax.random.PRNGKey(2), 1)
+        data = jax.tree.map(lambda x: x[0], state.data)
+        data = data.replace(qpos=data.qpos.at[1].set(-0.1), ctrl=jnp.linspace(-1.0, 1.0, task.action_dim))
+        forces = lambda d: penalty_forces(task.model, d, task.contact_points, task.penalty_contact, task.joints)
+
+        def reference(data):
+            data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
+            data = mjx.fwd_acceleration(task.model, mjx.fwd_actuation(task.model, data.replace(qfrc_applied=forces(data))))
+            return mjx.euler(task.model, data.replace(qacc=data.qacc_smooth))
+
+        ours, theirs = jax.jit(lambda d: penalty_step(task.model, d, 1, forces))(data), jax.jit(reference)(data)
+        assert float(jnp.abs(forces(mjx.fwd_position(task.model, data))).max()) > 100.0  # feet in the floor
+        np.testing.assert_allclose(ours.qvel, theirs.qvel, rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(ours.qpos, theirs.qpos, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("name", LEGGED)

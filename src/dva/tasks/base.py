@@ -26,8 +26,8 @@ from flax import struct
 from mujoco import mjx
 
 from dva.tasks.physics import (
-    PenaltyContact, check_physics, floor_contact_points, implicit_gradient_substep, limited_joints,
-    penalty_forces, penalty_substep,
+    PenaltyContact, check_physics, floor_contact_points, implicit_gradient_substep, joint_forces, penalty_forces,
+    penalty_step,
 )
 
 CONTROL_DT = 1.0 / 60.0  # the paper's control rate (60 Hz)
@@ -66,7 +66,7 @@ class Task(abc.ABC):
     episode_length: ClassVar[int] = 1000
     camera: ClassVar[str] = "track"  # the camera the pixel observations come from
     physics: ClassVar[str] = "penalty"  # the default contact model (dva.tasks.physics)
-    # Penalty contacts (spec §7, dflex): 16 substeps at 60 Hz, parameters per robot.
+    # Penalty contacts (dflex's): 16 substeps at 60 Hz, parameters per robot.
     penalty_substeps: ClassVar[int] = 16
     penalty_contact: ClassVar[PenaltyContact] = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=0.9)
     # MuJoCo soft constraints: substeps and contact softness (solref = (time constant, damping
@@ -75,8 +75,8 @@ class Task(abc.ABC):
     contact_solref: ClassVar[tuple[float, float]] = (0.02, 1.0)
     contact_solimp: ClassVar[tuple[float, ...]] = (0.9, 0.95, 0.001, 0.5, 2.0)
     converged_iterations: ClassVar[int] = 100  # the forward solve of physics="mujoco"
-    # Armature (reflected rotor inertia) on every joint, the root's included, as dflex sets it
-    # (spec §7); None keeps the MJCF's values.
+    # Armature (reflected rotor inertia) on every joint, the root's included, as dflex sets it;
+    # None keeps the MJCF's values.
     armature: ClassVar[float | None] = None
 
     def __init__(self, physics: str | None = None) -> None:
@@ -103,14 +103,18 @@ class Task(abc.ABC):
         # Pyramidal friction cones: MJX's elliptic cones take sqrt(0) for idle contacts, which
         # makes every gradient NaN.
         spec.option.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
-        if physics == "penalty":  # contacts and limits become forces; MuJoCo has nothing to solve
-            spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_LIMIT
+        if physics == "penalty":  # contacts, limits, springs and damping become explicit forces
+            spec.option.disableflags |= (mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_LIMIT
+                                         | mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
         self.mj_model: mujoco.MjModel = spec.compile()
-        self.model: mjx.Model = mjx.put_model(self.mj_model)
         if physics == "penalty":
             self.contact_points = floor_contact_points(self.mj_model)
-            self.limits = limited_joints(self.mj_model)
-        else:
+            self.joints = joint_forces(self.mj_model, self.penalty_contact.limit_kd)
+            # Applied by penalty_forces instead; MuJoCo's passive forces would count them twice.
+            self.mj_model.dof_damping[:] = 0.0
+            self.mj_model.jnt_stiffness[:] = 0.0
+        self.model: mjx.Model = mjx.put_model(self.mj_model)
+        if physics == "mujoco":
             converged = spec.compile()
             converged.opt.iterations = self.converged_iterations
             converged.opt.ls_iterations = 50
@@ -177,7 +181,8 @@ class Task(abc.ABC):
         data = jax.vmap(self.physics_step)(state.data, action)
         obs = jax.vmap(self.observation)(data, action)
         reward = jax.vmap(self.reward)(data, action)
-        finite = jnp.all(jnp.isfinite(obs), axis=-1) & jnp.isfinite(reward)
+        bounded = lambda x: jnp.all(jnp.abs(x) < 1e6, axis=-1)  # NaN fails this too
+        finite = jnp.all(jnp.isfinite(obs), axis=-1) & jnp.isfinite(reward) & bounded(data.qpos) & bounded(data.qvel)
         # A diverged simulation is a failure: reset it rather than poison the batch with NaN.
         terminated = jax.vmap(self.is_terminated)(data) | ~finite
         step_count = state.step_count + 1
@@ -202,17 +207,14 @@ class Task(abc.ABC):
     def physics_step(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
         """``substeps`` physics steps of one environment with the control held at ``action``."""
         data = data.replace(ctrl=action)
-        # Full float32 matrix products: GPUs would otherwise run them in TF32 (spec §7).
+        # Full float32 matrix products: GPUs would otherwise run them in TF32, whose gradients
+        # through long rollouts are too coarse.
         with jax.default_matmul_precision("highest"):
-            data, _ = jax.lax.scan(lambda d, _: (self.substep(d), None), data, None, length=self.substeps)
-        return data
-
-    def substep(self, data: mjx.Data) -> mjx.Data:
-        """One physics step (``CONTROL_DT / substeps``) of one environment under its ``ctrl``."""
-        if self.physics == "penalty":
-            forces = lambda d: penalty_forces(self.model, d, self.contact_points, self.penalty_contact, *self.limits)
-            return penalty_substep(self.model, data, forces)
-        return implicit_gradient_substep(self.model, self.converged_model, data)
+            if self.physics == "penalty":
+                forces = lambda d: penalty_forces(self.model, d, self.contact_points, self.penalty_contact, self.joints)
+                return penalty_step(self.model, data, self.substeps, forces)
+            substep = lambda d, _: (implicit_gradient_substep(self.model, self.converged_model, d), None)
+            return jax.lax.scan(substep, data, None, length=self.substeps)[0]
 
     def _reset_one(self, key: jax.Array) -> tuple[mjx.Data, jax.Array]:
         qpos, qvel = self.initial_state(key)

@@ -8,6 +8,7 @@ import mujoco
 from mujoco import mjx
 
 from dva.tasks.base import Task, load_asset_spec
+from dva.tasks.physics import PenaltyContact
 
 
 class CartpoleSwingup(Task):
@@ -22,6 +23,8 @@ class CartpoleSwingup(Task):
     camera = "view"
     cart_limit = 2.5
     penalty_substeps = 4  # nothing touches the floor and no joint is limited: no stiff forces
+    # Our own model: its joints have only their MJCF damping (no dflex-style damping on top).
+    penalty_contact = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=0.9, limit_kd=0.0)
 
     def build_spec(self) -> mujoco.MjSpec:
         return load_asset_spec("cartpole.xml")

@@ -19,11 +19,13 @@ class PlanarRunner(Task):
     """Shared state observation and reset noise of the planar robots.
 
     Observation (SHAC's): ``qpos[1:]`` (height, pitch, joint angles) and ``qvel`` — 11-D for the
-    Hopper, 17-D for the Cheetah. Reset: uniform noise ±``reset_noise`` on every coordinate but x.
+    Hopper, 17-D for the Cheetah. Reset (the reference code's): uniform noise ±``reset_noise`` on
+    every coordinate but x, ±``reset_velocity`` on every velocity.
     """
 
     asset: str
     reset_noise = 0.05
+    reset_velocity = 0.05
 
     def build_spec(self) -> mujoco.MjSpec:
         return load_asset_spec(self.asset)
@@ -33,7 +35,7 @@ class PlanarRunner(Task):
         nq, nv = self.mj_model.nq, self.mj_model.nv
         noise = jax.random.uniform(pos_key, (nq,), minval=-self.reset_noise, maxval=self.reset_noise)
         qpos = self.qpos0() + noise.at[0].set(0.0)
-        qvel = jax.random.uniform(vel_key, (nv,), minval=-self.reset_noise, maxval=self.reset_noise)
+        qvel = jax.random.uniform(vel_key, (nv,), minval=-self.reset_velocity, maxval=self.reset_velocity)
         return qpos, qvel
 
     def observation(self, data: mjx.Data, action: jax.Array) -> jax.Array:
@@ -51,7 +53,7 @@ class Hopper(PlanarRunner):
 
     name = "hopper"
     asset = "hopper.xml"
-    armature = 1.0  # dflex's, root included (spec §7): a 5× smaller 32-step gradient than the MJCF's 0.5
+    armature = 1.0  # dflex's, root included: a 5× smaller 32-step gradient than the MJCF's 0.5
     termination_height = -0.45
     height_tolerance = 0.15
     max_pitch = jnp.pi / 6
@@ -75,7 +77,10 @@ class Cheetah(PlanarRunner):
     name = "cheetah"
     asset = "cheetah.xml"
     contact_solref = (0.05, 1.0)
-    penalty_contact = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=1.0)  # spec §7's cheetah
+    penalty_contact = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=1.0)
+    armature = 0.1  # dflex's, root included
+    reset_noise = 0.1
+    reset_velocity = 0.25
 
     def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:
         return data.qvel[0]
