@@ -21,9 +21,11 @@ from pathlib import Path
 
 import pytest
 
-EVENTS = {"compile": "/jax/core/compile/backend_compile_duration",
-          "trace": "/jax/core/compile/jaxpr_trace_duration",
-          "lower": "/jax/core/compile/jaxpr_to_mlir_module_duration"}
+EVENTS = {
+    "compile": "/jax/core/compile/backend_compile_duration",
+    "trace": "/jax/core/compile/jaxpr_trace_duration",
+    "lower": "/jax/core/compile/jaxpr_to_mlir_module_duration",
+}
 
 _current_test: list[str | None] = [None]
 _stats: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
@@ -66,11 +68,15 @@ def main() -> None:
     rows.sort(key=lambda row: -row[1].get("wall_s", 0.0))
     print("| test | wall (s) | compiles | compile (s) | trace + lower (s) |\n|---|---|---|---|---|")
     for test, s in rows[: args.top]:
-        print(f"| {test} | {s.get('wall_s', 0):.1f} | {s.get('compile_n', 0)} | {s.get('compile_s', 0):.1f} "
-              f"| {s.get('trace_s', 0) + s.get('lower_s', 0):.1f} |")
+        print(
+            f"| {test} | {s.get('wall_s', 0):.1f} | {s.get('compile_n', 0)} | {s.get('compile_s', 0):.1f} "
+            f"| {s.get('trace_s', 0) + s.get('lower_s', 0):.1f} |"
+        )
     total = lambda key: sum(s.get(key, 0.0) for _, s in rows)
-    print(f"\nall tests: {total('wall_s'):.0f} s of test time (summed over workers), {total('compile_n'):.0f} "
-          f"compiles taking {total('compile_s'):.0f} s, tracing and lowering {total('trace_s') + total('lower_s'):.0f} s")
+    print(
+        f"\nall tests: {total('wall_s'):.0f} s of test time (summed over workers), {total('compile_n'):.0f} "
+        f"compiles taking {total('compile_s'):.0f} s, tracing and lowering {total('trace_s') + total('lower_s'):.0f} s"
+    )
 
 
 if __name__ == "__main__":

@@ -54,8 +54,12 @@ def measure(task: str, preset: str, form: str, repeats: int) -> dict[str, float]
     with convolutions(form):
         state = jax.jit(functools.partial(initial_state, agent))(jax.random.PRNGKey(0))
         model = state.params["model"]
-        frames = jax.random.randint(jax.random.PRNGKey(1), (config.batch_size * config.batch_length, config.image_size,
-                                                            config.image_size, 3), 0, 256).astype(jnp.uint8)
+        frames = jax.random.randint(
+            jax.random.PRNGKey(1),
+            (config.batch_size * config.batch_length, config.image_size, config.image_size, 3),
+            0,
+            256,
+        ).astype(jnp.uint8)
         features = jax.random.normal(jax.random.PRNGKey(2), (len(frames), config.deter + config.stoch * config.classes))
 
         def reconstruction_loss(encoder, decoder):  # the encoder and decoder passes one update makes
@@ -81,16 +85,30 @@ def main() -> None:
     from dva.analysis.bench import machine_description, markdown_table
 
     config = make_config(args.task, "dreamerv3", args.preset)
-    print(f"DreamerV3 on {args.task}, preset {args.preset}: {config.batch_size} × {config.batch_length} replayed "
-          f"steps of {config.image_size}² per update, CNN depth {config.cnn_depth}, deter {config.deter}")
+    print(
+        f"DreamerV3 on {args.task}, preset {args.preset}: {config.batch_size} × {config.batch_length} replayed "
+        f"steps of {config.image_size}² per update, CNN depth {config.cnn_depth}, deter {config.deter}"
+    )
     print(machine_description())
     times = {form: measure(args.task, args.preset, form, args.repeats) for form in ("xla", "blocks")}
-    rows = [(label, f"{times['xla'][key]:.3f}", f"{times['blocks'][key]:.3f}",
-             f"{times['xla'][key] / times['blocks'][key]:.2f}×")
-            for key, label in (("update_s", "one update (s)"), ("conv_s", "encoder + decoder, forward + backward (s)"),
-                               ("compile_s", "compile + first run (s)"))]
-    print(markdown_table(["best of the timed runs", "XLA convolutions", "2×2 block convolutions (default)",
-                          "speed-up"], rows))
+    rows = [
+        (
+            label,
+            f"{times['xla'][key]:.3f}",
+            f"{times['blocks'][key]:.3f}",
+            f"{times['xla'][key] / times['blocks'][key]:.2f}×",
+        )
+        for key, label in (
+            ("update_s", "one update (s)"),
+            ("conv_s", "encoder + decoder, forward + backward (s)"),
+            ("compile_s", "compile + first run (s)"),
+        )
+    ]
+    print(
+        markdown_table(
+            ["best of the timed runs", "XLA convolutions", "2×2 block convolutions (default)", "speed-up"], rows
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -37,23 +37,36 @@ def main() -> None:
         out_grad = jax.random.normal(key, (args.images, out, out, 32))
         flops = 2.0 * args.images * out * out * 32 * 9 * channels_in
         # each gradient alone: XLA drops the unused forward and the other gradient
-        parts = {"forward": best_seconds(jax.jit(lambda x, k: conv_valid(x, k, stride)), x, kernel),
-                 "kernel gradient": best_seconds(jax.jit(
-                     lambda x, k, g: jax.vjp(lambda k: conv_valid(x, k, stride), k)[1](g)[0]), x, kernel, out_grad),
-                 "input gradient": best_seconds(jax.jit(
-                     lambda x, k, g: jax.vjp(lambda x: conv_valid(x, k, stride), x)[1](g)[0]), x, kernel, out_grad)}
+        parts = {
+            "forward": best_seconds(jax.jit(lambda x, k: conv_valid(x, k, stride)), x, kernel),
+            "kernel gradient": best_seconds(
+                jax.jit(lambda x, k, g: jax.vjp(lambda k: conv_valid(x, k, stride), k)[1](g)[0]), x, kernel, out_grad
+            ),
+            "input gradient": best_seconds(
+                jax.jit(lambda x, k, g: jax.vjp(lambda x: conv_valid(x, k, stride), x)[1](g)[0]), x, kernel, out_grad
+            ),
+        }
         for part, seconds in parts.items():
             counted = layer > 0 or part != "input gradient"
             total_s, total_flops = total_s + seconds * counted, total_flops + flops * counted
-            rows.append((f"{layer} ({size}² × {channels_in} → {out}² × 32, stride {stride})", part,
-                         f"{seconds * 1e3:.2f}", f"{flops / seconds / 1e9:.0f}", "" if counted else "not needed"))
+            rows.append(
+                (
+                    f"{layer} ({size}² × {channels_in} → {out}² × 32, stride {stride})",
+                    part,
+                    f"{seconds * 1e3:.2f}",
+                    f"{flops / seconds / 1e9:.0f}",
+                    "" if counted else "not needed",
+                )
+            )
         size, channels_in = out, 32
     print(f"{args.images} images of {args.image_size}² × {args.channels_in}; {machine_description()}")
     print(markdown_table(["layer", "convolution", "ms", "GFLOP/s", ""], rows))
     bound = total_flops / rate
-    print(f"\none chunk: {total_s * 1e3:.2f} ms for {total_flops / 1e6:.0f} MFLOP = {total_flops / total_s / 1e9:.0f} "
-          f"GFLOP/s; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound * 1e3:.2f} ms, "
-          f"{total_s / bound:.2f}× the bound")
+    print(
+        f"\none chunk: {total_s * 1e3:.2f} ms for {total_flops / 1e6:.0f} MFLOP = {total_flops / total_s / 1e9:.0f} "
+        f"GFLOP/s; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound * 1e3:.2f} ms, "
+        f"{total_s / bound:.2f}× the bound"
+    )
 
 
 if __name__ == "__main__":

@@ -60,9 +60,15 @@ def audit(run_dir: Path, num_envs: int, steps: int) -> list:
 
     start, energy, work, height, start_height = jax.device_get(replay(jax.random.PRNGKey(0)))
     from_nowhere = np.max(energy - start[None] - work, axis=0)  # per env
-    return [spec.task, run_dir.name, f"{np.max(from_nowhere):.3g}", f"{np.mean(work[-1]):.4g}",
-            f"{np.max(from_nowhere) / np.mean(np.abs(work[-1])):.2%}", f"{np.mean(start_height):.3f}",
-            f"{np.max(height):.3f}"]
+    return [
+        spec.task,
+        run_dir.name,
+        f"{np.max(from_nowhere):.3g}",
+        f"{np.mean(work[-1]):.4g}",
+        f"{np.max(from_nowhere) / np.mean(np.abs(work[-1])):.2%}",
+        f"{np.mean(start_height):.3f}",
+        f"{np.max(height):.3f}",
+    ]
 
 
 def main() -> None:
@@ -73,8 +79,20 @@ def main() -> None:
     args = parser.parse_args()
     rows = [audit(run, args.num_envs, args.steps) for run in args.runs]
     print(f"\nEnergy audit over {args.steps} control steps × {args.num_envs} envs; {machine_description()}\n")
-    print(markdown_table(["task", "run", "max E(t) − E(0) − W(t) [J]", "motor work W [J]", "of |W|",
-                          "start height [m]", "highest torso [m]"], rows))
+    print(
+        markdown_table(
+            [
+                "task",
+                "run",
+                "max E(t) − E(0) − W(t) [J]",
+                "motor work W [J]",
+                "of |W|",
+                "start height [m]",
+                "highest torso [m]",
+            ],
+            rows,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -34,8 +34,9 @@ HORIZONS = (1, 2, 4, 8, 16, 32)
 WARM_UP_STEPS = 60
 
 
-def gradient_norms(name: str, physics: str, num_envs: int, seed: int = 0,
-                   policy: Callable[[jax.Array], jax.Array] | None = None) -> np.ndarray:
+def gradient_norms(
+    name: str, physics: str, num_envs: int, seed: int = 0, policy: Callable[[jax.Array], jax.Array] | None = None
+) -> np.ndarray:
     """Per-env norms of ∇_actions (h-step return), shape (len(HORIZONS), num_envs).
 
     ``policy`` maps state observations (N, obs_dim) to actions in [−1, 1]; None: random actions.
@@ -98,20 +99,45 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int, default=16)
     args = parser.parse_args()
     cases = [(run.name, *trained_policy(run)) for run in args.runs] or [
-        ("random", name, physics, None) for name in args.tasks for physics in args.physics]
+        ("random", name, physics, None) for name in args.tasks for physics in args.physics
+    ]
     rows = []
     for label, name, physics, policy in cases:
         per_env = gradient_norms(name, physics, args.num_envs, policy=policy)
         norms = per_env.mean(axis=1)
         # The mean can be one env's: the median env's own h=32 / h=1 says whether growth is typical.
         median_ratio = np.median(per_env[-1] / per_env[0])
-        rows.append([name, physics, label, *(f"{n:.3g}" for n in norms), f"{norms[-1] / norms[0]:.3g}",
-                     f"{median_ratio:.3g}", f"{norms[-1] / norms[-2]:.2g}", make_task(name, physics).substeps])
+        rows.append(
+            [
+                name,
+                physics,
+                label,
+                *(f"{n:.3g}" for n in norms),
+                f"{norms[-1] / norms[0]:.3g}",
+                f"{median_ratio:.3g}",
+                f"{norms[-1] / norms[-2]:.2g}",
+                make_task(name, physics).substeps,
+            ]
+        )
         print(f"{name} {physics} {label}: done", flush=True)
-    print(f"\nGradient norm of the h-step return w.r.t. the actions (mean over {args.num_envs} envs); {machine_description()}\n")
-    print(markdown_table(["task", "physics", "policy", *(f"h={h}" for h in HORIZONS), "h=32 / h=1",
-                          "median env's h=32 / h=1", "h=32 / h=16",
-                          "substeps"], rows))
+    print(
+        f"\nGradient norm of the h-step return w.r.t. the actions (mean over {args.num_envs} envs); {machine_description()}\n"  # noqa: E501
+    )
+    print(
+        markdown_table(
+            [
+                "task",
+                "physics",
+                "policy",
+                *(f"h={h}" for h in HORIZONS),
+                "h=32 / h=1",
+                "median env's h=32 / h=1",
+                "h=32 / h=16",
+                "substeps",
+            ],
+            rows,
+        )
+    )
 
 
 if __name__ == "__main__":

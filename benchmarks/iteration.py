@@ -6,7 +6,7 @@ critic / rendering), plus the pixel encoder's analytic compute bound.
 
 Prints a markdown table. The encoder bound is its arithmetic (forward + backward over all h × N
 frames) divided by the float32 matmul rate this machine reaches. For pixel actors it also times
-spec §6's reference measurement — the encoder + trunk's forward and parameter gradient over 512
+the reference measurement — the encoder + trunk's forward and parameter gradient over 512
 images of 84² × 9 — next to PyTorch's 1.55 s on a comparable 2-core CPU, and states the actor
 backward's rate per FLOP against PyTorch's on that measurement.
 """
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import argparse
 
-# Spec §6: the DrQ-v2 encoder + 64-wide trunk, forward + backward w.r.t. its parameters, on
+# The reference measurement: the DrQ-v2 encoder + 64-wide trunk, forward + backward w.r.t. its parameters, on
 # (images, size, channels) uint8 pixels, PyTorch 2.13 on a comparable 2-core CPU: seconds.
 PYTORCH_ENCODER_GRADIENT = {"images": 512, "image_size": 84, "channels_in": 9, "seconds": 1.55}
 
@@ -23,7 +23,7 @@ PYTORCH_ENCODER_GRADIENT = {"images": 512, "image_size": 84, "channels_in": 9, "
 def encoder_gradient_seconds(images: int, image_size: int, channels_in: int, trunk: int = 64) -> float:
     """Best steady-state seconds of the DrQ-v2 encoder + trunk projection's forward and its
     gradient w.r.t. the parameters over ``images`` random uint8 images, jitted at the top level
-    (spec §6's measurement)."""
+    (the reference measurement)."""
     import jax
     import jax.numpy as jnp
 
@@ -55,20 +55,33 @@ def main() -> None:
     from dva.analysis.breakdown import measure_iteration
     from dva.analysis.profile import encoder_flops, matmul_flops_per_s
 
-    config, times = measure_iteration(args.task, args.algo, args.preset, num_envs=args.num_envs,
-                                      image_size=args.image_size, actor_backward_chunk=args.chunk)
-    print(f"{args.algo} on {args.task}, preset {args.preset}: {config.num_envs} envs × {config.horizon} steps"
-          + (f", {config.image_size}² × {config.frame_stack} frames" if config.observation == "pixels" else ""))
+    config, times = measure_iteration(
+        args.task,
+        args.algo,
+        args.preset,
+        num_envs=args.num_envs,
+        image_size=args.image_size,
+        actor_backward_chunk=args.chunk,
+    )
+    print(
+        f"{args.algo} on {args.task}, preset {args.preset}: {config.num_envs} envs × {config.horizon} steps"
+        + (f", {config.image_size}² × {config.frame_stack} frames" if config.observation == "pixels" else "")
+    )
     print(machine_description())
-    rows = [(part, f"{seconds:.3f}", f"{seconds / times['iteration']:.0%}") for part, seconds in times.items()
-            if part != "render_with_actor"]
+    rows = [
+        (part, f"{seconds:.3f}", f"{seconds / times['iteration']:.0%}")
+        for part, seconds in times.items()
+        if part != "render_with_actor"
+    ]
     print(markdown_table(["part", "seconds", "share of iteration"], rows))
     if "render_with_actor" in times:
         apart = times["render"] + times["actor_forward"]
-        print(f"\nrendering and the actor forward side by side in one loop (no dependence): "
-              f"{times['render_with_actor']:.3f} s vs {apart:.3f} s one after the other "
-              f"({1 - times['render_with_actor'] / apart:+.0%}): the most that rendering the next frame "
-              f"while the actor runs could save per iteration")
+        print(
+            f"\nrendering and the actor forward side by side in one loop (no dependence): "
+            f"{times['render_with_actor']:.3f} s vs {apart:.3f} s one after the other "
+            f"({1 - times['render_with_actor'] / apart:+.0%}): the most that rendering the next frame "
+            f"while the actor runs could save per iteration"
+        )
     if config.observation == "pixels":
         images = config.num_envs * config.horizon
         flops = encoder_flops(config.image_size, 3 * config.frame_stack, trunk=config.trunk)
@@ -76,20 +89,24 @@ def main() -> None:
         # Chunks recompute the encoder's forward; the kept backward passes (chunk 0) do not.
         recomputed = config.actor_backward_chunk > 0
         bound = images * (flops["forward"] * recomputed + flops["backward"]) / rate
-        print(f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
-              f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images "
-              f"({'forward + backward: chunks of ' + str(config.actor_backward_chunk) if recomputed else 'backward: kept passes'}); "
-              f"measured actor backward {times['actor_backward']:.3f} s = {times['actor_backward'] / bound:.1f}× the bound")
+        print(
+            f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
+            f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images "
+            f"({'forward + backward: chunks of ' + str(config.actor_backward_chunk) if recomputed else 'backward: kept passes'}); "  # noqa: E501
+            f"measured actor backward {times['actor_backward']:.3f} s = {times['actor_backward'] / bound:.1f}× the bound"  # noqa: E501
+        )
         reference = PYTORCH_ENCODER_GRADIENT
         ours = encoder_gradient_seconds(reference["images"], reference["image_size"], reference["channels_in"])
         reference_flops = encoder_flops(reference["image_size"], reference["channels_in"])
         reference_rate = reference["images"] * sum(reference_flops.values()) / reference["seconds"]
         actor_rate = bound * rate / times["actor_backward"]
-        print(f"spec §6's measurement (encoder + trunk, forward + parameter gradient, {reference['images']} × "
-              f"{reference['image_size']}² × {reference['channels_in']}): {ours:.3f} s here vs PyTorch's "
-              f"{reference['seconds']} s = {ours / reference['seconds']:.2f}×; actor backward "
-              f"{actor_rate / 1e9:.0f} GFLOP/s vs PyTorch's {reference_rate / 1e9:.0f} on that measurement "
-              f"= {reference_rate / actor_rate:.2f}× its time per FLOP")
+        print(
+            f"reference measurement (encoder + trunk, forward + parameter gradient, {reference['images']} × "
+            f"{reference['image_size']}² × {reference['channels_in']}): {ours:.3f} s here vs PyTorch's "
+            f"{reference['seconds']} s = {ours / reference['seconds']:.2f}×; actor backward "
+            f"{actor_rate / 1e9:.0f} GFLOP/s vs PyTorch's {reference_rate / 1e9:.0f} on that measurement "
+            f"= {reference_rate / actor_rate:.2f}× its time per FLOP"
+        )
 
 
 if __name__ == "__main__":

@@ -42,9 +42,15 @@ def saturation(run_dir: Path, steps: int) -> list:
     mean, reward = map(np.asarray, replay(jax.random.PRNGKey(1)))
     action = np.tanh(mean)
     log_std = np.mean(np.asarray(actor_params["params"]["log_std"]))
-    return [f"{spec.task} {spec.algo} ({run_dir.name})", f"{np.median(np.abs(mean)):.2f}",
-            f"{np.percentile(np.abs(mean), 90):.2f}", f"{np.mean(np.abs(action) > 0.95):.2f}",
-            f"{action.std(axis=0).mean():.3f}", f"{log_std:.2f}", f"{reward.mean():.2f}"]
+    return [
+        f"{spec.task} {spec.algo} ({run_dir.name})",
+        f"{np.median(np.abs(mean)):.2f}",
+        f"{np.percentile(np.abs(mean), 90):.2f}",
+        f"{np.mean(np.abs(action) > 0.95):.2f}",
+        f"{action.std(axis=0).mean():.3f}",
+        f"{log_std:.2f}",
+        f"{reward.mean():.2f}",
+    ]
 
 
 def main() -> None:
@@ -52,8 +58,15 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--steps", type=int, default=300)
     args = parser.parse_args()
-    header = ["run", "median abs(μ)", "90th pct abs(μ)", "share abs(tanh μ) > 0.95", "std of tanh μ over time",
-              "mean log σ", "reward / step"]
+    header = [
+        "run",
+        "median abs(μ)",
+        "90th pct abs(μ)",
+        "share abs(tanh μ) > 0.95",
+        "std of tanh μ over time",
+        "mean log σ",
+        "reward / step",
+    ]
     print(machine_description())
     print(markdown_table(header, [saturation(run, args.steps) for run in args.runs]))
 

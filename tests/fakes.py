@@ -29,10 +29,21 @@ def small_off_policy_agent(algo: str, iterations: int, **overrides):
     trained for ``iterations``: returns the agent, its state before and after the last iteration
     and that iteration's metrics (the last update is then checked on what the iteration did,
     without compiling the update on its own)."""
-    config = make_config("cartpole_balance", algo, "cpu", num_envs=4, image_size=16, batch_size=8, hidden=(16, 16),
-                         feature_dim=8, replay_size=400, **overrides)
-    env = PixelObservations(make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack,
-                            config.action_repeat)
+    config = make_config(
+        "cartpole_balance",
+        algo,
+        "cpu",
+        num_envs=4,
+        image_size=16,
+        batch_size=8,
+        hidden=(16, 16),
+        feature_dim=8,
+        replay_size=400,
+        **overrides,
+    )
+    env = PixelObservations(
+        make_task("cartpole_balance"), 4, StripeRenderer(4), config.frame_stack, config.action_repeat
+    )
     agent = ALGORITHMS[algo].make_agent(env, config)
     state = jax.jit(agent.init)(jax.random.PRNGKey(0))
     iteration = jax.jit(agent.iteration)

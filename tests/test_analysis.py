@@ -22,12 +22,27 @@ def read_rows(path):
 
 
 def test_per_million_steps_splits_the_iteration_by_hand():
-    times = {"rollout_forward": 0.5, "render": 0.2, "actor_forward": 0.1, "rollout_backward": 0.3,
-             "actor_backward": 0.4, "critic": 0.05, "iteration": 1.6}
+    times = {
+        "rollout_forward": 0.5,
+        "render": 0.2,
+        "actor_forward": 0.1,
+        "rollout_backward": 0.3,
+        "actor_backward": 0.4,
+        "critic": 0.05,
+        "iteration": 1.6,
+    }
     parts = per_million_steps(times, num_envs=10, horizon=100)  # 1000 steps per iteration → × 1000
-    assert parts == pytest.approx({"simulation forward": 200.0, "simulation backward": 300.0, "rendering": 200.0,
-                                   "actor forward": 100.0, "actor backward": 400.0, "critic fitting": 50.0,
-                                   "other": 350.0})  # 1.6 − 1.25 s
+    assert parts == pytest.approx(
+        {
+            "simulation forward": 200.0,
+            "simulation backward": 300.0,
+            "rendering": 200.0,
+            "actor forward": 100.0,
+            "actor backward": 400.0,
+            "critic fitting": 50.0,
+            "other": 350.0,
+        }
+    )  # 1.6 − 1.25 s
     fused = per_million_steps({**times, "iteration": 1.0}, num_envs=10, horizon=100)
     assert fused["other"] == 0.0  # faster than its parts: nothing left over, never negative
 
@@ -43,14 +58,23 @@ def test_encoder_flops_count_the_drqv2_encoder_by_hand():
 
 
 def test_cost_ratios_divide_visual_shac_by_dva():
-    rows = [{"task": "hopper", "algo": "dva", "variant": "dva", "backward_s": 0.2, "peak_memory_mb": 100.0},
-            {"task": "hopper", "algo": "dva", "variant": "dva, chunk 4", "backward_s": 0.25, "peak_memory_mb": 50.0},
-            {"task": "hopper", "algo": "shac-pixels", "variant": "shac-pixels", "backward_s": 0.5, "peak_memory_mb": 400.0},
-            {"task": "cheetah", "algo": "dva", "variant": "dva", "backward_s": 1.0, "peak_memory_mb": 10.0},
-            {"task": "cheetah", "algo": "shac-pixels", "variant": "shac-pixels", "backward_s": 3.0, "peak_memory_mb": 20.0}]
+    rows = [
+        {"task": "hopper", "algo": "dva", "variant": "dva", "backward_s": 0.2, "peak_memory_mb": 100.0},
+        {"task": "hopper", "algo": "dva", "variant": "dva, chunk 4", "backward_s": 0.25, "peak_memory_mb": 50.0},
+        {"task": "hopper", "algo": "shac-pixels", "variant": "shac-pixels", "backward_s": 0.5, "peak_memory_mb": 400.0},
+        {"task": "cheetah", "algo": "dva", "variant": "dva", "backward_s": 1.0, "peak_memory_mb": 10.0},
+        {"task": "cheetah", "algo": "shac-pixels", "variant": "shac-pixels", "backward_s": 3.0, "peak_memory_mb": 20.0},
+    ]
     hopper, hopper_chunked, cheetah = ratios(rows)
-    assert hopper == pytest.approx({"task": "hopper", "variant": "dva", "backward_ratio": 2.5, "memory_ratio": 4.0,
-                                    "paper_backward_ratio": 0.51 / 0.19})
+    assert hopper == pytest.approx(
+        {
+            "task": "hopper",
+            "variant": "dva",
+            "backward_ratio": 2.5,
+            "memory_ratio": 4.0,
+            "paper_backward_ratio": 0.51 / 0.19,
+        }
+    )
     assert hopper_chunked["variant"] == "dva, chunk 4" and hopper_chunked["memory_ratio"] == pytest.approx(8.0)
     assert hopper_chunked["backward_ratio"] == pytest.approx(2.0)
     assert cheetah["task"] == "cheetah" and cheetah["backward_ratio"] == pytest.approx(3.0)
@@ -89,8 +113,12 @@ def test_analyze_breakdown_and_gradnorm_end_to_end(tmp_path):
 
     main(["analyze", "gradnorm", "--tasks", "cartpole_swingup", "--iterations", "2", *TINY, "--out", str(tmp_path)])
     norms = read_rows(tmp_path / "gradnorm" / "gradnorm.csv")
-    assert [(r["algo"], r["iteration"]) for r in norms] == [("dva", "1"), ("dva", "2"),
-                                                             ("shac-pixels", "1"), ("shac-pixels", "2")]
+    assert [(r["algo"], r["iteration"]) for r in norms] == [
+        ("dva", "1"),
+        ("dva", "2"),
+        ("shac-pixels", "1"),
+        ("shac-pixels", "2"),
+    ]
     assert all(np.isfinite(float(r["actor_grad_norm"])) and float(r["actor_grad_norm"]) > 0 for r in norms)
     assert iio.imread(tmp_path / "gradnorm" / "gradnorm.png").ndim == 3
 

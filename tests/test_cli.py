@@ -19,7 +19,7 @@ def test_tasks_lists_every_task_with_sizes(capsys):
     assert "cartpole_swingup" in out and "240" in out
     rows = {line.split()[0]: line.split() for line in out.splitlines()[1:]}
     assert rows["quadruped"][1:6] == ["49", "12", "1000", "penalty", "16"]
-    assert "20000 / 1000 / 1000 / 0.9" in " ".join(rows["hopper"])  # spec §7's hopper
+    assert "20000 / 1000 / 1000 / 0.9" in " ".join(rows["hopper"])  # the paper's hopper
     assert rows["cartpole_swingup"][6] == "none"  # nothing touches the floor
 
 
@@ -34,8 +34,21 @@ def test_help_describes_every_command(capsys):
 
 
 def test_render_writes_grid_and_video(tmp_path):
-    main(["render", "--task", "cartpole_swingup", "--num-envs", "4", "--out", str(tmp_path),
-          "--steps", "20", "--video-size", "96"])
+    main(
+        [
+            "render",
+            "--task",
+            "cartpole_swingup",
+            "--num-envs",
+            "4",
+            "--out",
+            str(tmp_path),
+            "--steps",
+            "20",
+            "--video-size",
+            "96",
+        ]
+    )
     grid = iio.imread(tmp_path / "cartpole_swingup_observations.png")
     assert grid.shape == (2 * 86 + 2, 2 * 86 + 2, 3)
     frames = iio.imread(tmp_path / "cartpole_swingup_random.mp4")
@@ -48,8 +61,10 @@ def test_unknown_task_is_one_line_error(capsys):
         main(["render", "--task", "walker"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err == ("dva: error: unknown task 'walker'; choose one of: cartpole_swingup, cartpole_balance, hopper, cheetah, ant, humanoid, "
-                   "quadruped")
+    assert err == (
+        "dva: error: unknown task 'walker'; choose one of: cartpole_swingup, cartpole_balance, hopper, cheetah, ant, humanoid, "  # noqa: E501
+        "quadruped"
+    )
 
 
 def test_unknown_physics_is_one_line_error(capsys, tmp_path):
@@ -70,9 +85,29 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
     """A tiny D.Va run (pixels, decoupled) through the CLI: train (with its report: plots and a
     policy video) → plot → eval."""
     run_dir = tmp_path / "run"
-    main(["train", "--task", "cartpole_swingup", "--algo", "dva", "--iterations", "2", "--run-dir", str(run_dir),
-          "--eval-every", "2", "--shac.num-envs", "4", "--shac.horizon", "8", "--shac.image-size", "24",
-          "--video-size", "64"])
+    main(
+        [
+            "train",
+            "--task",
+            "cartpole_swingup",
+            "--algo",
+            "dva",
+            "--iterations",
+            "2",
+            "--run-dir",
+            str(run_dir),
+            "--eval-every",
+            "2",
+            "--shac.num-envs",
+            "4",
+            "--shac.horizon",
+            "8",
+            "--shac.image-size",
+            "24",
+            "--video-size",
+            "64",
+        ]
+    )
     log = (run_dir / "progress.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in log[1:]] == ["0", "1", "2"]  # iteration 0 = untrained policy
     assert "dva on cartpole_swingup: return" in capsys.readouterr().out
@@ -117,16 +152,19 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
     def fake_run(name, algo, seed, rows):
         run_dir = tmp_path / name
         run_dir.mkdir()
-        (run_dir / "run.json").write_text(json.dumps({"algo": algo, "task": "cartpole_balance", "preset": "cpu",
-                                                      "seed": seed, "config": {}}))
+        (run_dir / "run.json").write_text(
+            json.dumps({"algo": algo, "task": "cartpole_balance", "preset": "cpu", "seed": seed, "config": {}})
+        )
         lines = ["env_steps,wall_time,eval_return,train_return"]
         lines += [f"{steps},{seconds},{value},nan" for steps, seconds, value in rows]
         (run_dir / "progress.csv").write_text("\n".join(lines) + "\n")
         return run_dir
 
-    runs = [fake_run("a0", "dva", 0, [(0, 0, 100), (500, 30, 50), (1000, 60, 2500), (2000, 120, 2000)]),
-            fake_run("a1", "dva", 1, [(0, 0, 100), (1000, 60, 900), (3000, 240, 2200)]),
-            fake_run("b0", "curl", 0, [(0, 0, 50), (500, 600, 300)])]
+    runs = [
+        fake_run("a0", "dva", 0, [(0, 0, 100), (500, 30, 50), (1000, 60, 2500), (2000, 120, 2000)]),
+        fake_run("a1", "dva", 1, [(0, 0, 100), (1000, 60, 900), (3000, 240, 2200)]),
+        fake_run("b0", "curl", 0, [(0, 0, 50), (500, 600, 300)]),
+    ]
     path, markdown = write_summary(runs, tmp_path / "out", threshold=2092.0)
     rows = {row["setting"]: row for row in csv.DictReader(path.open())}
     dva, curl = rows["dva on cartpole_balance (cpu preset)"], rows["curl on cartpole_balance (cpu preset)"]
@@ -136,7 +174,10 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
     assert float(dva["minutes_to_threshold"]) == 2.5  # median of 1 and 4 minutes
     assert float(dva["env_steps_to_threshold"]) == 2000.0
     assert curl["reached"] == "0" and curl["minutes_to_threshold"] == "nan"
-    assert "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | 300 | 10.0 | 500 | 0 / 1 | nan | nan |" in markdown
+    assert (
+        "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | 300 | 10.0 | 500 | 0 / 1 | nan | nan |"
+        in markdown
+    )
     assert (tmp_path / "out" / "summary.md").read_text() == markdown
 
 
@@ -154,6 +195,11 @@ def test_diverged_training_exits_with_a_message(tmp_path, monkeypatch, capsys):
     message = capsys.readouterr().err
     assert "training stopped: actor gradient norm 5e+09 is NaN or above 1e+08 at iteration 59" in message
     assert "--shac.state-grad-clip" in message
+    # Each algorithm's hint names its own flags: a CURL run is not told about --shac.*.
+    with pytest.raises(SystemExit):
+        main(["train", "--task", "cartpole_swingup", "--algo", "curl", "--run-dir", str(tmp_path / "curl")])
+    message = capsys.readouterr().err
+    assert "--curl.lr" in message and "--shac." not in message
 
 
 def test_plot_labels_keep_clipped_runs_apart(tmp_path):
@@ -171,8 +217,24 @@ def test_plot_labels_keep_clipped_runs_apart(tmp_path):
 
 
 def test_analyze_gradients_writes_table_and_figure(tmp_path, capsys):
-    main(["analyze", "gradients", "--task", "cartpole_swingup", "--iterations", "4", "--every", "2",
-          "--num-envs", "4", "--horizon", "8", "--out", str(tmp_path)])
+    main(
+        [
+            "analyze",
+            "gradients",
+            "--task",
+            "cartpole_swingup",
+            "--iterations",
+            "4",
+            "--every",
+            "2",
+            "--num-envs",
+            "4",
+            "--horizon",
+            "8",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     out_dir = tmp_path / "gradients_cartpole_swingup"
     lines = (out_dir / "apg_vs_dpg.csv").read_text().splitlines()
     assert lines[0] == "iteration,cosine,apg_norm,dpg_norm,train_return" and len(lines) == 1 + 3  # its 0, 2, 4
@@ -188,7 +250,9 @@ def test_train_flags_reach_every_config_field_of_the_chosen_algorithm_only():
 
     from dva.cli import TrainCommand
 
-    command = tyro.cli(TrainCommand, args=["--algo", "dagger", "--teacher", "runs/teacher", "--dagger.batch-size", "64"])
+    command = tyro.cli(
+        TrainCommand, args=["--algo", "dagger", "--teacher", "runs/teacher", "--dagger.batch-size", "64"]
+    )
     assert command.config_overrides() == {"teacher": "runs/teacher", "batch_size": 64}
     command = tyro.cli(TrainCommand, args=["--algo", "drqv2", "--drqv2.hidden", "32", "32", "--drqv2.n-step", "5"])
     assert command.config_overrides() == {"hidden": (32, 32), "n_step": 5}

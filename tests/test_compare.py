@@ -31,8 +31,9 @@ class FakeTraining:
         self.calls.append(dict(task=task, algo=algo, run_dir=run_dir, minutes=minutes, resume=resume, **overrides))
         run_dir.mkdir(parents=True, exist_ok=True)
         if not resume:
-            (run_dir / "run.json").write_text(json.dumps({"task": task, "algo": algo, "preset": preset, "seed": seed,
-                                                          "config": overrides}))
+            (run_dir / "run.json").write_text(
+                json.dumps({"task": task, "algo": algo, "preset": preset, "seed": seed, "config": overrides})
+            )
             (run_dir / "progress.csv").write_text("env_steps,wall_time,eval_return,train_return\n0,0,0,nan\n")
         with (run_dir / "progress.csv").open() as f:
             rows = list(csv.DictReader(f))
@@ -50,6 +51,7 @@ class FakeTraining:
             @staticmethod
             def latest_step():
                 return 1 if (run_dir / "checkpoint").exists() else None
+
         return Manager()
 
 
@@ -63,18 +65,31 @@ def fake(monkeypatch):
 
 def test_figures_compare_the_paper_settings():
     assert [(s.algo, s.overrides) for s in figure_settings("ablation-value", ["hopper"])] == [
-        ("dva", ()), ("dva", (("use_critic", False),))]
-    assert [dict(s.overrides)["frame_stack"] for s in figure_settings("ablation-frames", ["hopper"])] == [1, 2, 3, 4, 5, 6]
+        ("dva", ()),
+        ("dva", (("use_critic", False),)),
+    ]
+    assert [dict(s.overrides)["frame_stack"] for s in figure_settings("ablation-frames", ["hopper"])] == [
+        1,
+        2,
+        3,
+        4,
+        5,
+        6,
+    ]
     assert [s.algo for s in figure_settings("fig4", ["cartpole_swingup"])] == ["dva", "drqv2", "curl", "dreamerv3"]
     assert [s.algo for s in figure_settings("fig6", ["a", "b"])] == ["dva", "dagger"] * 2
-    assert [(s.algo, s.slug) for s in figure_settings("fig13", ["ant"])] == [("shac", "ant_shac"),
-                                                                          ("dpg-state", "ant_dpg_state")]
+    assert [(s.algo, s.slug) for s in figure_settings("fig13", ["ant"])] == [
+        ("shac", "ant_shac"),
+        ("dpg-state", "ant_dpg_state"),
+    ]
     with pytest.raises(ValueError, match="figure 'fig5' is not allowed"):
         figure_settings("fig5", ["hopper"])
     assert [s.label for s in figure_settings("ablation-frames", ["hopper"], frames=[1, 3])] == [
-        "D.Va, 1 frame", "D.Va, 3 frames"]
+        "D.Va, 1 frame",
+        "D.Va, 3 frames",
+    ]
     for bad in ([], [0, 3], [2, 2], [1.5]):
-        with pytest.raises(ValueError, match=rf"frames = \[.*\] is not allowed; use distinct ints ≥ 1"):
+        with pytest.raises(ValueError, match=r"frames = \[.*\] is not allowed; use distinct ints ≥ 1"):
             figure_settings("ablation-frames", ["hopper"], frames=bad)
     with pytest.raises(ValueError, match=r"frames = \[1\] is only allowed with ablation-frames, not with 'fig4'"):
         figure_settings("fig4", ["hopper"], frames=[1])
@@ -84,7 +99,9 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     args = ["compare", "ablation-value", "--seeds", "0", "--out", str(tmp_path), "--threshold", "150"]
     main([*args, "--minutes", "2"])
     assert [(c["algo"], c.get("use_critic"), c["minutes"], c["resume"]) for c in fake.calls] == [
-        ("dva", None, 2.0, False), ("dva", False, 2.0, False)]
+        ("dva", None, 2.0, False),
+        ("dva", False, 2.0, False),
+    ]
     # evaluated by the clock, once a minute, whatever the setting's iteration time
     assert all((c["eval_every"], c["eval_minutes"]) == (None, 1.0) for c in fake.calls)
     out = tmp_path / "ablation-value"
@@ -107,11 +124,28 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
 
 
 def test_compare_frames_trains_only_the_stacks_asked_for(fake, tmp_path):
-    main(["compare", "ablation-frames", "--tasks", "hopper", "--seeds", "0", "--minutes", "1", "--frames", "1", "3",
-          "--out", str(tmp_path)])
+    main(
+        [
+            "compare",
+            "ablation-frames",
+            "--tasks",
+            "hopper",
+            "--seeds",
+            "0",
+            "--minutes",
+            "1",
+            "--frames",
+            "1",
+            "3",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert [(c["task"], c["frame_stack"]) for c in fake.calls] == [("hopper", 1), ("hopper", 3)]
     assert sorted(p.name for p in (tmp_path / "ablation-frames" / "runs").iterdir()) == [
-        "hopper_d_va_1_frame_s0", "hopper_d_va_3_frames_s0"]
+        "hopper_d_va_1_frame_s0",
+        "hopper_d_va_3_frames_s0",
+    ]
 
 
 def test_cpu_groups_are_disjoint_and_equal():
@@ -160,7 +194,7 @@ def test_launch_pinned_child_runs_on_its_cpus_and_its_failure_names_the_log(tmp_
     """A stand-in for the Python child records the CPUs it may run on (after a pause: the parent
     pins it just after it starts) and exits with the code it is told."""
     child = tmp_path / "child.sh"
-    child.write_text("#!/bin/sh\nsleep 1\ngrep Cpus_allowed_list /proc/self/status\nexit \"$EXIT_CODE\"\n")
+    child.write_text('#!/bin/sh\nsleep 1\ngrep Cpus_allowed_list /proc/self/status\nexit "$EXIT_CODE"\n')
     child.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(child))
     cpu = sorted(os.sched_getaffinity(0))[-1]
@@ -182,11 +216,26 @@ def test_compare_with_workers_runs_every_job_once(fake, tmp_path, monkeypatch, c
 
     monkeypatch.setattr(compare_module, "launch_pinned", launch)
     monkeypatch.setattr(compare_module, "available_cpus", lambda: [0, 1])
-    args = ["compare", "ablation-value", "--seeds", "0", "1", "--minutes", "2", "--out", str(tmp_path), "--workers", "2"]
+    args = [
+        "compare",
+        "ablation-value",
+        "--seeds",
+        "0",
+        "1",
+        "--minutes",
+        "2",
+        "--out",
+        str(tmp_path),
+        "--workers",
+        "2",
+    ]
     main(args)
     assert sorted((c["run_dir"].name, c["minutes"]) for c in fake.calls) == [
-        ("cartpole_swingup_d_va_s0", 2.0), ("cartpole_swingup_d_va_s1", 2.0),
-        ("cartpole_swingup_d_va_without_critic_s0", 2.0), ("cartpole_swingup_d_va_without_critic_s1", 2.0)]
+        ("cartpole_swingup_d_va_s0", 2.0),
+        ("cartpole_swingup_d_va_s1", 2.0),
+        ("cartpole_swingup_d_va_without_critic_s0", 2.0),
+        ("cartpole_swingup_d_va_without_critic_s1", 2.0),
+    ]
     assert set(launched) <= {(0,), (1,)}
     summary = {row["setting"]: row for row in csv.DictReader((tmp_path / "ablation-value" / "summary.csv").open())}
     assert summary["D.Va on cartpole_swingup"]["seeds"] == "2"

@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from fakes import small_off_policy_agent
 
 from dva.algorithms.curl import info_nce_logits, squashed_gaussian_sample, temperature_loss
-from fakes import small_off_policy_agent
 
 
 def test_info_nce_logits_and_loss_by_hand():
@@ -53,12 +53,19 @@ def test_curl_update_trains_every_part_and_moves_the_key_encoder_by_momentum():
     assert metrics["healthy"] and all(np.isfinite(metrics[name]) for name in agent.loss_names)
     learner, updated = previous.learner, state.learner  # one update apart
     for name in ("encoder", "critic", "actor", "projection", "bilinear", "log_alpha"):
-        change = max(np.abs(a - b).max() for a, b in zip(jax.tree.leaves(updated.params[name]),
-                                                         jax.tree.leaves(learner.params[name])))
+        change = max(
+            np.abs(a - b).max()
+            for a, b in zip(jax.tree.leaves(updated.params[name]), jax.tree.leaves(learner.params[name]))
+        )
         assert change > 0, name
-    for name, tau in (("encoder", config.encoder_tau), ("projection", config.encoder_tau), ("critic", config.critic_tau)):
-        expected = jax.tree.map(lambda online, old: tau * online + (1 - tau) * old,
-                                updated.params[name], learner.target[name])
+    for name, tau in (
+        ("encoder", config.encoder_tau),
+        ("projection", config.encoder_tau),
+        ("critic", config.critic_tau),
+    ):
+        expected = jax.tree.map(
+            lambda online, old: tau * online + (1 - tau) * old, updated.params[name], learner.target[name]
+        )
         for got, want in zip(jax.tree.leaves(updated.target[name]), jax.tree.leaves(expected)):
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
     action = agent.act(agent.policy(state), agent.env.observe(state.env))

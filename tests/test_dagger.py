@@ -7,12 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fakes import StripeRenderer
 
 from dva.algorithms import make_config
 from dva.algorithms.dagger import DAgger
 from dva.envs import PixelObservations
 from dva.tasks import make_task
-from fakes import StripeRenderer
 
 NUM_ENVS, HORIZON = 4, 6
 
@@ -30,9 +30,21 @@ class LinearTeacher:
 
 def dagger(**overrides) -> DAgger:
     task = make_task("cartpole_balance")
-    config = make_config("cartpole_balance", "dagger", "cpu", teacher="unused", num_envs=NUM_ENVS, horizon=HORIZON,
-                         image_size=16, batch_size=8, replay_size=200, updates_per_iteration=4, actor_hidden=(16,),
-                         trunk=16, **overrides)
+    config = make_config(
+        "cartpole_balance",
+        "dagger",
+        "cpu",
+        teacher="unused",
+        num_envs=NUM_ENVS,
+        horizon=HORIZON,
+        image_size=16,
+        batch_size=8,
+        replay_size=200,
+        updates_per_iteration=4,
+        actor_hidden=(16,),
+        trunk=16,
+        **overrides,
+    )
     env = PixelObservations(task, NUM_ENVS, StripeRenderer(NUM_ENVS), config.frame_stack)
     return DAgger(env, config, LinearTeacher(task), (jnp.asarray(-3.0), jnp.asarray(-0.5)))
 
@@ -49,7 +61,7 @@ def test_dagger_labels_with_the_teacher_and_follows_it_when_told():
         expected.append(teacher_action(env))
         env = step(env, expected[-1])
     np.testing.assert_allclose(after.env.data.qpos, env.data.qpos, rtol=1e-5, atol=1e-6)
-    stored = np.asarray(after.replay.experience["action"][0, :NUM_ENVS * HORIZON])
+    stored = np.asarray(after.replay.experience["action"][0, : NUM_ENVS * HORIZON])
     np.testing.assert_allclose(stored, np.concatenate(expected), rtol=1e-6)  # every label is the teacher's
     assert float(metrics["teacher_fraction"]) == 1.0 and np.isfinite(metrics["bc_loss"])
 
@@ -66,7 +78,9 @@ def test_dagger_student_rollouts_are_still_labelled_and_the_student_learns_the_l
     labels = state.replay.experience["action"][0, : 8 * NUM_ENVS * HORIZON]
     assert float(pixels.std()) > 0 and float(labels.std()) > 0
     # It fits the labels: the cloning loss over everything stored falls well below the untrained one.
-    assert float(agent.bc_loss(state.student, pixels, labels)) < 0.2 * float(agent.bc_loss(initial.student, pixels, labels))
+    assert float(agent.bc_loss(state.student, pixels, labels)) < 0.2 * float(
+        agent.bc_loss(initial.student, pixels, labels)
+    )
     assert agent.act(agent.policy(state), observations).shape == (NUM_ENVS, 1)
     student_driven = dagger(teacher_fraction=0.0, stop_bc_loss=1e9)
     _, metrics = jax.jit(student_driven.iteration)(jax.jit(student_driven.init)(jax.random.PRNGKey(0)))

@@ -9,9 +9,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.algorithms.dreamer_math import (categorical_kl, kl_balance_losses, lambda_returns, normalized_advantage,
-                                         symexp, symlog, symlog_bins, twohot, twohot_decode, unimix_logits,
-                                         update_return_scale)
+from dva.algorithms.dreamer_math import (
+    categorical_kl,
+    kl_balance_losses,
+    lambda_returns,
+    normalized_advantage,
+    symexp,
+    symlog,
+    symlog_bins,
+    twohot,
+    twohot_decode,
+    unimix_logits,
+    update_return_scale,
+)
 
 
 def test_symlog_and_symexp_by_hand():

@@ -1,7 +1,8 @@
 """DreamerV3 through the training loop (a tiny model on Cart-pole balance): logs, evaluation with
-its recurrent state, a checkpoint that restores its replay and latents, a world model whose reconstruction improves, the policy's
-memory (reset at episode starts), and the train-ratio arithmetic. Its numerical pieces are
-tested in ``test_dreamer_math.py``; learning to balance is a slow test (``test_learning.py``)."""
+its recurrent state, a checkpoint that restores its replay and latents, a world model whose
+reconstruction improves, the policy's memory (reset at episode starts), and the train-ratio
+arithmetic. Its numerical pieces are tested in ``test_dreamer_math.py``; learning to balance is a
+slow test (``test_learning.py``)."""
 
 from __future__ import annotations
 
@@ -21,8 +22,24 @@ from dva.training import load_run, train
 
 # 4 × 8 replayed steps per update at ratio 16 over 2 envs: collect 1 step, update once. No action
 # repeat: one env step to compile where the loop has one (collection, seed phase, evaluation).
-TINY = dict(num_envs=2, image_size=16, action_repeat=1, batch_size=4, batch_length=8, train_ratio=16.0, deter=32, units=32, stoch=4,
-            classes=4, cnn_depth=4, num_bins=31, horizon=5, replay_size=200, seed_steps=8, model_lr=1e-3)
+TINY = dict(
+    num_envs=2,
+    image_size=16,
+    action_repeat=1,
+    batch_size=4,
+    batch_length=8,
+    train_ratio=16.0,
+    deter=32,
+    units=32,
+    stoch=4,
+    classes=4,
+    cnn_depth=4,
+    num_bins=31,
+    horizon=5,
+    replay_size=200,
+    seed_steps=8,
+    model_lr=1e-3,
+)
 
 
 def rows(run_dir) -> list[dict]:
@@ -35,8 +52,16 @@ def dreamer_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("dreamerv3") / "run"
     # one call: resuming is the loop's, tested with SHAC and DrQ-v2 in test_training.py (a second call
     # here would cost a minute of this file's loading and compiling on a 2-core CI box)
-    train("cartpole_balance", "dreamerv3", preset="cpu", iterations=20, run_dir=run_dir, eval_every=10,
-          checkpoint_every=10, **TINY)
+    train(
+        "cartpole_balance",
+        "dreamerv3",
+        preset="cpu",
+        iterations=20,
+        run_dir=run_dir,
+        eval_every=10,
+        checkpoint_every=10,
+        **TINY,
+    )
     return run_dir
 
 
@@ -114,8 +139,9 @@ class ImaginedActorLoss:
     def __init__(self, run_dir) -> None:
         _, self.agent, self.state = load_run(run_dir)
         steps = self.agent.replay.sample_sequences(self.state.replay, jax.random.PRNGKey(0))
-        _, ((deter, stoch), _) = jax.jit(self.agent.world_model_loss)(self.state.params["model"], steps,
-                                                                        jax.random.PRNGKey(1))
+        _, ((deter, stoch), _) = jax.jit(self.agent.world_model_loss)(
+            self.state.params["model"], steps, jax.random.PRNGKey(1)
+        )
         self.deter, self.stoch = deter.reshape(-1, deter.shape[-1]), stoch.reshape((-1,) + stoch.shape[2:])
         self.scale, self.key = jnp.asarray(3.0), jax.random.PRNGKey(2)
         self._compiled = {}
@@ -125,8 +151,9 @@ class ImaginedActorLoss:
         if actor_gradient not in self._compiled:
             agent = copy.copy(self.agent)
             agent.config = dataclasses.replace(self.agent.config, entropy=0.0, actor_gradient=actor_gradient)
-            loss = lambda a, m: agent.actor_loss(a, m, self.state.params["critic"], self.scale, self.deter,
-                                                 self.stoch, self.key)
+            loss = lambda a, m: agent.actor_loss(
+                a, m, self.state.params["critic"], self.scale, self.deter, self.stoch, self.key
+            )
             self._compiled[actor_gradient] = jax.jit(jax.value_and_grad(loss, has_aux=True))
         return self._compiled[actor_gradient](actor, model)
 
@@ -175,7 +202,9 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     cfg, model, critic, actor = agent.config, params["model"], params["critic"], params["actor"]
     (loss, (_, returns, weight, new_scale, _)), actor_grad = imagined_actor_loss(actor, model)
 
-    feats, _ = agent.imagine(model, actor, imagined_actor_loss.deter, imagined_actor_loss.stoch, imagined_actor_loss.key)
+    feats, _ = agent.imagine(
+        model, actor, imagined_actor_loss.deter, imagined_actor_loss.stoch, imagined_actor_loss.key
+    )
     reward = np.asarray(twohot_decode(agent.reward_head.apply(model["reward"], feats[1:]), agent.bins))
     cont = np.asarray(agent.cont_head.apply(model["cont"], feats[1:])[..., 0] > 0.0, np.float32)
     value = np.asarray(twohot_decode(agent.critic.apply(critic, feats), agent.bins))
@@ -189,8 +218,10 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     np.testing.assert_allclose(new_scale, expected_scale, rtol=1e-4)
     np.testing.assert_allclose(loss, -np.mean(expected_weight * advantage), rtol=1e-4, atol=1e-6)
 
-    output_layer = max((name for name in model["cont"]["params"] if name.startswith("Dense")),
-                       key=lambda name: int(name.split("_")[-1]))
+    output_layer = max(
+        (name for name in model["cont"]["params"] if name.startswith("Dense")),
+        key=lambda name: int(name.split("_")[-1]),
+    )
     sharper = jax.tree.map(lambda x: x, model)
     sharper["cont"]["params"][output_layer] = jax.tree.map(lambda x: 2.0 * x, model["cont"]["params"][output_layer])
     _, sharper_grad = imagined_actor_loss(actor, sharper)

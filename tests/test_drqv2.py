@@ -8,11 +8,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fakes import small_off_policy_agent
 
 from dva.augmentation import shift_images
 from dva.rendering import push_frame, reset_frame_stack
 from dva.replay import FrameReplay, Step, stack_at
-from fakes import small_off_policy_agent
 
 
 def test_shift_images_is_pixel_exact():
@@ -31,9 +31,14 @@ def steps_from(rewards, terminated=(), truncated=(), first=()) -> Step:
     """One sampled sequence (L steps) with frame t filled with the value t + 1."""
     length = len(rewards)
     flag = lambda where: jnp.array([t in where for t in range(length)])
-    return Step(frame=jnp.broadcast_to(jnp.arange(1, length + 1, dtype=jnp.uint8)[:, None, None, None], (length, 2, 2, 3)),
-                first=flag(first), action=jnp.arange(length, dtype=jnp.float32)[:, None],
-                reward=jnp.asarray(rewards, jnp.float32), terminated=flag(terminated), truncated=flag(truncated))
+    return Step(
+        frame=jnp.broadcast_to(jnp.arange(1, length + 1, dtype=jnp.uint8)[:, None, None, None], (length, 2, 2, 3)),
+        first=flag(first),
+        action=jnp.arange(length, dtype=jnp.float32)[:, None],
+        reward=jnp.asarray(rewards, jnp.float32),
+        terminated=flag(terminated),
+        truncated=flag(truncated),
+    )
 
 
 def test_n_step_transition_against_hand_computed_returns():
@@ -69,17 +74,29 @@ def test_frame_stacks_rebuilt_from_single_frames_match_the_wrapper():
 def test_replay_samples_only_written_steps_and_never_crosses_an_episode():
     num_envs, gamma = 2, 0.5
     replay = FrameReplay(num_envs, capacity=200, batch_size=256, frame_stack=3, n_step=3, gamma=gamma)
-    example = Step(frame=jnp.zeros((2, 2, 3), jnp.uint8), first=jnp.zeros((), bool), action=jnp.zeros(1),
-                   reward=jnp.zeros(()), terminated=jnp.zeros((), bool), truncated=jnp.zeros((), bool))
+    example = Step(
+        frame=jnp.zeros((2, 2, 3), jnp.uint8),
+        first=jnp.zeros((), bool),
+        action=jnp.zeros(1),
+        reward=jnp.zeros(()),
+        terminated=jnp.zeros((), bool),
+        truncated=jnp.zeros((), bool),
+    )
     state = replay.init(example)
     length, end = 9, {(0, 4)}  # env 0 fails at step 4; frame value = 10·env + t + 1 tells a step apart
     for t in range(length):
         value = jnp.array([10 * e + t + 1 for e in range(num_envs)], jnp.uint8)
-        state = replay.add(state, Step(
-            frame=jnp.broadcast_to(value[:, None, None, None], (num_envs, 2, 2, 3)),
-            first=jnp.array([t == 0 or (e, t - 1) in end for e in range(num_envs)]),
-            action=jnp.zeros((num_envs, 1)), reward=jnp.full(num_envs, float(t)),
-            terminated=jnp.array([(e, t) in end for e in range(num_envs)]), truncated=jnp.zeros(num_envs, bool)))
+        state = replay.add(
+            state,
+            Step(
+                frame=jnp.broadcast_to(value[:, None, None, None], (num_envs, 2, 2, 3)),
+                first=jnp.array([t == 0 or (e, t - 1) in end for e in range(num_envs)]),
+                action=jnp.zeros((num_envs, 1)),
+                reward=jnp.full(num_envs, float(t)),
+                terminated=jnp.array([(e, t) in end for e in range(num_envs)]),
+                truncated=jnp.zeros(num_envs, bool),
+            ),
+        )
     batch = jax.device_get(replay.sample(state, jax.random.PRNGKey(0)))
     assert batch.obs.min() > 0 and batch.next_obs.min() > 0  # every frame was written
     for obs, reward, discount in zip(batch.obs, batch.reward, batch.discount):
@@ -105,8 +122,9 @@ def test_drqv2_learns_after_the_seed_phase_and_moves_the_target_by_tau(small_age
     assert metrics["exploration"] < 1.0  # the std schedule has started
     learner, updated = previous.learner, state.learner
     tau = agent.config.target_tau
-    expected = jax.tree.map(lambda online, old: tau * online + (1 - tau) * old,
-                            updated.params["critic"], learner.target_critic)
+    expected = jax.tree.map(
+        lambda online, old: tau * online + (1 - tau) * old, updated.params["critic"], learner.target_critic
+    )
     for got, want in zip(jax.tree.leaves(updated.target_critic), jax.tree.leaves(expected)):
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
     moved = [np.abs(a - b).max() for a, b in zip(jax.tree.leaves(updated.params), jax.tree.leaves(learner.params))]
@@ -119,7 +137,9 @@ def test_drqv2_acts_with_the_actors_mean(small_agent):
     action = agent.act(agent.policy(state), observation)
     assert action.shape == (4, 1) and np.all(np.abs(np.asarray(action)) <= 1.0)
     params = state.learner.params
-    np.testing.assert_allclose(action, agent.actor.apply(params["actor"], agent.encoder.apply(params["encoder"], observation["pixels"])))
+    np.testing.assert_allclose(
+        action, agent.actor.apply(params["actor"], agent.encoder.apply(params["encoder"], observation["pixels"]))
+    )
 
 
 def test_replay_stores_rewards_times_reward_scale(small_agent):

@@ -109,9 +109,13 @@ def test_rollout_gradients_match_finite_differences(name, physics):
                     da = jax.random.normal(ka, (MAX_STEPS, 1, nu)).at[horizon:].set(0.0)
                     dv = jax.random.normal(kv, (nv,))
                     analytic = float(jnp.sum(grad_actions * da) + jnp.dot(grad_qvel, dv))
-                    numeric = (value(state, horizon, actions + EPS * da, EPS * dv, projection)
-                               - value(state, horizon, actions - EPS * da, -EPS * dv, projection)) / (2 * EPS)
-                    assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-6), f"{name} {physics} {label} H={horizon}"
+                    numeric = (
+                        value(state, horizon, actions + EPS * da, EPS * dv, projection)
+                        - value(state, horizon, actions - EPS * da, -EPS * dv, projection)
+                    ) / (2 * EPS)
+                    assert analytic == pytest.approx(numeric, rel=1e-4, abs=1e-6), (
+                        f"{name} {physics} {label} H={horizon}"
+                    )
 
         # 32 steps of random actions (wider ones) from a fresh state: everything stays finite.
         total, (grad_actions, grad_qvel) = value_and_grad(state0, MAX_STEPS, 2.0 * actions, jnp.zeros(nv), projection)

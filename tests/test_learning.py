@@ -39,7 +39,7 @@ def test_shac_on_cartpole_state_learns(tmp_path):
 
 def test_shac_on_hopper_state_learns_to_hop(tmp_path):
     """SHAC on Hopper with penalty contacts, CPU preset: about 7 minutes. The two 30-minute runs
-    in benchmarks/RESULTS.md had their best of the evaluations at 1400–1500 iterations at 4546
+    on the previous Hopper model had their best of the evaluations at 1400–1500 iterations at 4546
     and 6851 (random actions: ≈ −140); 2000 leaves room for a less lucky seed."""
     run_dir = train("hopper", "shac", preset="cpu", iterations=1500, run_dir=tmp_path / "run", eval_every=50)
     assert late_eval_return(run_dir) > 2000
@@ -54,7 +54,7 @@ def test_dva_on_cartpole_pixels_beats_random_by_a_wide_margin(tmp_path):
 @pytest.mark.parametrize(("algo", "minutes"), [("drqv2", 60), ("curl", 60), ("dreamerv3", 20)])
 def test_pixel_baselines_learn_cartpole_balance(tmp_path, algo, minutes):
     """DrQ-v2, CURL and DreamerV3 from pixels, CPU preset (seed phase included). DrQ-v2 alone on
-    2 cores (benchmarks/RESULTS.md): best of the last three evaluations 1710 / 2090 / 2358 at
+    2 cores (docs/results.md): best of the last three evaluations 1710 / 2090 / 2358 at
     20 / 40 / 50 minutes, above 2× random for good from 49 minutes, 2384 at 60. CURL alone: 18 of
     its 26 evaluations over minutes 48–58 above 2× random, the best of the last three 2371."""
     run_dir = train("cartpole_balance", algo, preset="cpu", minutes=minutes, run_dir=tmp_path / "run", eval_every=100)

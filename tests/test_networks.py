@@ -49,7 +49,8 @@ def test_conv_valid_gradients_match_xla_at_top_level_and_inside_a_scan(stride, i
     x = jax.random.normal(kx, (2, 3, 20, 17, 5))  # (loop steps, images, H, W, C)
     kernel = jax.random.normal(kk, (3, 3, 5, 4))
     reference = lambda x, k: jax.lax.conv_general_dilated(  # noqa: E731
-        x, k, (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        x, k, (stride, stride), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
     weights = jax.random.normal(kg, (2,) + reference(x[0], kernel).shape)
 
     def loss(conv):
@@ -57,6 +58,7 @@ def test_conv_valid_gradients_match_xla_at_top_level_and_inside_a_scan(stride, i
             if in_loop:
                 return jax.lax.scan(lambda acc, xw: (acc + jnp.sum(xw[1] * conv(xw[0], k)), None), 0.0, (x, weights))[0]
             return sum(jnp.sum(weights[i] * conv(x[i], k)) for i in range(2))
+
         return total
 
     ours = jax.jit(jax.value_and_grad(loss(lambda x, k: conv_valid(x, k, stride)), argnums=(0, 1)))(x, kernel)

@@ -12,8 +12,15 @@ from mujoco import mjx
 
 from dva.tasks import make_task
 from dva.tasks.physics import (
-    PenaltyContact, contact_state, floor_contact_points, joint_forces, mechanical_energy, penalty_forces, penalty_step,
-    point_forces_to_joints, point_velocities,
+    PenaltyContact,
+    contact_state,
+    floor_contact_points,
+    joint_forces,
+    mechanical_energy,
+    penalty_forces,
+    penalty_step,
+    point_forces_to_joints,
+    point_velocities,
 )
 
 LEGGED = ["hopper", "cheetah", "ant", "humanoid", "quadruped"]
@@ -51,7 +58,10 @@ def test_point_velocities_and_forces_match_mujocos_jacobians():
         data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
         position, _ = contact_state(data, points)
         jacobian = jax.vmap(lambda p, b: mjx.jac(task.model, data, p, b)[0])(position, jnp.asarray(points.body))
-        ours = point_velocities(task.model, data, points, position), point_forces_to_joints(task.model, data, points, position, force)
+        ours = (
+            point_velocities(task.model, data, points, position),
+            point_forces_to_joints(task.model, data, points, position, force),
+        )
         return ours, (jnp.einsum("pvi,v->pi", jacobian, data.qvel), jnp.einsum("pvi,pi->v", jacobian, force))
 
     (velocity, qfrc), (velocity_ref, qfrc_ref) = both(data)
@@ -126,11 +136,22 @@ def test_joint_springs_and_always_on_damping_hand_computed():
         joint = task.mj_model.joint(name)
         qpos[joint.qposadr[0]], qvel[joint.dofadr[0]] = angle, speed
     data = task._data0.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    qfrc = np.asarray(jax.jit(lambda d: penalty_forces(task.model, mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, d)),
-                                                       task.contact_points, task.penalty_contact, task.joints))(data))
+    qfrc = np.asarray(
+        jax.jit(
+            lambda d: penalty_forces(
+                task.model,
+                mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, d)),
+                task.contact_points,
+                task.penalty_contact,
+                task.joints,
+            )
+        )(data)
+    )
     for name, (angle, speed) in zip(names, [(0.3, 1.5), (-0.5, -2.0), (0.2, 0.7)]):
         stiffness, damping = expected[name]
-        assert qfrc[task.mj_model.joint(name).dofadr[0]] == pytest.approx(-stiffness * angle - damping * speed, rel=1e-5)
+        assert qfrc[task.mj_model.joint(name).dofadr[0]] == pytest.approx(
+            -stiffness * angle - damping * speed, rel=1e-5
+        )
     others = np.setdiff1d(np.arange(task.mj_model.nv), [task.mj_model.joint(n).dofadr[0] for n in names])
     np.testing.assert_allclose(qfrc[others], 0.0, atol=1e-5)
 
@@ -148,7 +169,9 @@ def test_one_substep_equals_mujocos_own_step():
 
         def reference(data):
             data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
-            data = mjx.fwd_acceleration(task.model, mjx.fwd_actuation(task.model, data.replace(qfrc_applied=forces(data))))
+            data = mjx.fwd_acceleration(
+                task.model, mjx.fwd_actuation(task.model, data.replace(qfrc_applied=forces(data)))
+            )
             return mjx.euler(task.model, data.replace(qacc=data.qacc_smooth))
 
         ours, theirs = jax.jit(lambda d: penalty_step(task.model, d, 1, forces))(data), jax.jit(reference)(data)
@@ -173,6 +196,7 @@ def test_falling_robot_never_gains_energy(name):
         def step(d, _):
             d = jax.vmap(task.physics_step)(d, jnp.zeros((2, task.action_dim)))
             return d, energy(d)
+
         return jnp.concatenate([energy(data)[None], jax.lax.scan(step, data, None, length=150)[1]])
 
     energy = np.asarray(energies(state.data))

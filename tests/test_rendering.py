@@ -60,7 +60,7 @@ def test_tracking_camera_sees_robot_and_pose_changes_image(name):
     task = make_task(name)
     renderer = PixelRenderer(task, num_envs=2, width=64)
     qpos = jnp.stack([task.qpos0(), task.qpos0()])
-    moved = qpos.at[1, -task.action_dim:].add(0.6)  # bend every actuated joint
+    moved = qpos.at[1, -task.action_dim :].add(0.6)  # bend every actuated joint
     moved = moved.at[1, 0].add(5.0)  # and move 5 m forward: the camera follows
     images = np.asarray(jax.jit(renderer.__call__)(moved))
     masks = [robot_mask(image) for image in images]

@@ -18,8 +18,16 @@ HORIZON, NUM_ENVS = 6, 2
 
 
 def agent(gradient: str) -> SHAC:
-    config = SHACConfig(observation="state", gradient=gradient, num_envs=NUM_ENVS, horizon=HORIZON,
-                        actor_hidden=(16,), critic_hidden=(16,), critic_minibatches=2, actor_backward_chunk=0)
+    config = SHACConfig(
+        observation="state",
+        gradient=gradient,
+        num_envs=NUM_ENVS,
+        horizon=HORIZON,
+        actor_hidden=(16,),
+        critic_hidden=(16,),
+        critic_minibatches=2,
+        actor_backward_chunk=0,
+    )
     return SHAC(PixelObservations(make_task("cartpole_swingup"), NUM_ENVS), config)
 
 
@@ -39,7 +47,8 @@ def decoupled(setup):
     shac, train, noise = setup
     loss_of = lambda params, offsets: shac.rollout(params, train, noise, offsets)
     (loss, aux), (grad_params, grad_actions) = jax.jit(jax.value_and_grad(loss_of, argnums=(0, 1), has_aux=True))(
-        train.actor_params, jnp.zeros_like(noise))
+        train.actor_params, jnp.zeros_like(noise)
+    )
     return loss, aux[-1], grad_params, grad_actions
 
 
@@ -63,7 +72,9 @@ def test_theorem1_decoupled_gradient_is_behaviour_cloning_gradient(setup, decoup
         return jnp.sum((mean + jnp.exp(log_std) * noise - improved) ** 2) / (2 * beta)
 
     minus_grad_bc = jax.tree.map(jnp.negative, grad_bc_loss(train.actor_params))
-    np.testing.assert_allclose(flat(grad_theta), flat(minus_grad_bc), rtol=2e-3, atol=1e-4 * np.abs(flat(grad_theta)).max())  # float32
+    np.testing.assert_allclose(
+        flat(grad_theta), flat(minus_grad_bc), rtol=2e-3, atol=1e-4 * np.abs(flat(grad_theta)).max()
+    )  # float32
     assert np.abs(flat(grad_theta)).max() > 0
 
 
@@ -97,7 +108,9 @@ def test_decoupled_rollout_cuts_the_observation_path(setup):
         return shac.rollout(train.actor_params, train.replace(env=env), noise)[1][-1]["actions"][0].sum()
 
     offset = jnp.zeros_like(train.env.obs)
-    gradient = lambda name: jax.jit(jax.grad(lambda w: first_action(agent(name), w)))(offset)  # compiled: 1, not ≈ 50, compiles
+    gradient = lambda name: jax.jit(jax.grad(lambda w: first_action(agent(name), w)))(
+        offset
+    )  # compiled: 1, not ≈ 50, compiles
     assert float(jnp.abs(gradient("decoupled")).max()) == 0.0
     assert float(jnp.abs(gradient("full")).max()) > 0.0
 
@@ -126,7 +139,8 @@ def test_state_gradient_clipping_in_the_rollout(setup, decoupled):
     def action_grad(clip):
         clipped = SHAC(shac.env, dataclasses.replace(shac.config, state_grad_clip=clip))
         return jax.jit(jax.value_and_grad(lambda w: clipped.rollout(train.actor_params, train, noise, w)[0]))(
-            jnp.zeros_like(noise))
+            jnp.zeros_like(noise)
+        )
 
     exact_loss, _, _, exact = decoupled  # state_grad_clip None: exact
     loose_loss, loose = action_grad(1e9)
@@ -211,8 +225,9 @@ def test_pre_tanh_penalty_adds_its_hand_computed_loss_and_action_gradient(setup,
     (new_loss, aux), new_grad = jax.jit(jax.value_and_grad(loss_of, has_aux=True))(jnp.zeros_like(noise))
     u = np.asarray(taken["actions"])
     assert float(new_loss) == pytest.approx(float(loss) + weight * np.mean(u**2), rel=1e-5)
-    np.testing.assert_allclose(np.asarray(new_grad), np.asarray(grad_actions) + 2 * weight * u / u.size,
-                               rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(new_grad), np.asarray(grad_actions) + 2 * weight * u / u.size, rtol=1e-4, atol=1e-7
+    )
 
 
 def test_init_log_std_sets_the_exploration_noise_of_the_taken_actions(setup):
@@ -237,19 +252,31 @@ def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     noise = jax.random.normal(jax.random.PRNGKey(1), (3, NUM_ENVS, 1))
 
     def second_action_gradient(gradient: str, renderer) -> np.ndarray:
-        config = SHACConfig(observation="pixels", gradient=gradient, num_envs=NUM_ENVS, horizon=3, image_size=16,
-                            actor_hidden=(8,), critic_hidden=(8,), critic_minibatches=2)
+        config = SHACConfig(
+            observation="pixels",
+            gradient=gradient,
+            num_envs=NUM_ENVS,
+            horizon=3,
+            image_size=16,
+            actor_hidden=(8,),
+            critic_hidden=(8,),
+            critic_minibatches=2,
+        )
         shac = SHAC(PixelObservations(task, NUM_ENVS, renderer, config.frame_stack), config)
         train = jax.jit(shac.init)(jax.random.PRNGKey(0))
 
         def second_action(qpos_offset):
             data = train.env.data.replace(qpos=train.env.data.qpos + qpos_offset)
-            return shac.rollout(train.actor_params, train.replace(env=train.env.replace(data=data)), noise)[1][-1]["actions"][1].sum()
+            return shac.rollout(train.actor_params, train.replace(env=train.env.replace(data=data)), noise)[1][-1][
+                "actions"
+            ][1].sum()
 
         return np.asarray(jax.jit(jax.grad(second_action))(jnp.zeros_like(train.env.data.qpos)))
 
     assert np.abs(second_action_gradient("full", SoftRenderer(task, NUM_ENVS, 16))).max() > 0
     assert np.abs(second_action_gradient("decoupled", PixelRenderer(task, NUM_ENVS, 16))).max() == 0.0
     with pytest.raises(ValueError, match="needs a differentiable renderer"):
-        SHAC(PixelObservations(task, NUM_ENVS, PixelRenderer(task, NUM_ENVS, 16)),
-             SHACConfig(observation="pixels", gradient="full", num_envs=NUM_ENVS))
+        SHAC(
+            PixelObservations(task, NUM_ENVS, PixelRenderer(task, NUM_ENVS, 16)),
+            SHACConfig(observation="pixels", gradient="full", num_envs=NUM_ENVS),
+        )

@@ -38,7 +38,9 @@ def test_cartpole_balance_starts_upright_and_shares_the_swing_up_reward():
     data = data_with(balance, [0.3, 0.1], [0.2, -0.4])
     expected = 10 - 0.1**2 - 0.1 * 0.4**2 - 0.05 * 0.3**2 - 0.1 * 0.2**2
     assert float(balance.reward(data, jnp.zeros(1))) == pytest.approx(expected, rel=1e-5)
-    assert float(swingup.reward(data_with(swingup, [0.3, 0.1], [0.2, -0.4]), jnp.zeros(1))) == pytest.approx(expected, rel=1e-5)
+    assert float(swingup.reward(data_with(swingup, [0.3, 0.1], [0.2, -0.4]), jnp.zeros(1))) == pytest.approx(
+        expected, rel=1e-5
+    )
 
 
 def test_hopper_reward_above_and_below_target_height():
@@ -116,8 +118,15 @@ def test_quadruped_reward_and_start_pose():
 
 
 def test_observation_sizes_match_shac(task):
-    expected = {"cartpole_swingup": (5, 1), "cartpole_balance": (5, 1), "hopper": (11, 3), "cheetah": (17, 6), "ant": (37, 8), "humanoid": (76, 21),
-                "quadruped": (49, 12)}
+    expected = {
+        "cartpole_swingup": (5, 1),
+        "cartpole_balance": (5, 1),
+        "hopper": (11, 3),
+        "cheetah": (17, 6),
+        "ant": (37, 8),
+        "humanoid": (76, 21),
+        "quadruped": (49, 12),
+    }
     assert (task.obs_dim, task.action_dim) == expected[task.name]
 
 

@@ -26,7 +26,16 @@ def rows(run_dir):
 
 def test_train_resume_continues_the_curve(tmp_path):
     run_dir = tmp_path / "run"
-    train("cartpole_swingup", "shac", preset="cpu", iterations=3, run_dir=run_dir, eval_every=3, checkpoint_every=2, **SMALL)
+    train(
+        "cartpole_swingup",
+        "shac",
+        preset="cpu",
+        iterations=3,
+        run_dir=run_dir,
+        eval_every=3,
+        checkpoint_every=2,
+        **SMALL,
+    )
     first = rows(run_dir)
     assert [int(r["iteration"]) for r in first] == [0, 1, 2, 3]  # 0: the untrained policy's return
     assert [int(r["env_steps"]) for r in first] == [0, 32, 64, 96]
@@ -82,8 +91,9 @@ def test_a_run_starts_from_the_types_a_checkpoint_restores(algo):
     any, or its resume compiles the iteration anew (measured: twice, 2 × 68 s for Cart-pole SHAC)."""
     agent = build_agent("cartpole_balance", algo, make_config("cartpole_balance", algo, "cpu"))
     shapes = jax.eval_shape(functools.partial(initial_state, agent), jax.random.PRNGKey(0))
-    assert not [jax.tree_util.keystr(path) for path, leaf in jax.tree_util.tree_flatten_with_path(shapes)[0]
-                if leaf.weak_type]
+    assert not [
+        jax.tree_util.keystr(path) for path, leaf in jax.tree_util.tree_flatten_with_path(shapes)[0] if leaf.weak_type
+    ]
 
 
 def test_corrupt_checkpoint_and_bad_input_errors(tmp_path):
@@ -121,9 +131,18 @@ def test_cpu_preset_gives_pixel_actors_on_legged_robots_a_longer_decay():
 
 
 def test_configs_from_older_runs_load_under_the_new_field_names():
-    config = config_from_dict("shac", {"observation": "state", "gradient": "full", "grad_clip": 2.0,
-                                       "max_grad_norm": 5.0, "iterations": 7, "actor_hidden": [16, 8],
-                                       "actor_backward_chunk": None})
+    config = config_from_dict(
+        "shac",
+        {
+            "observation": "state",
+            "gradient": "full",
+            "grad_clip": 2.0,
+            "max_grad_norm": 5.0,
+            "iterations": 7,
+            "actor_hidden": [16, 8],
+            "actor_backward_chunk": None,
+        },
+    )
     assert (config.clip_grad_norm, config.abort_grad_norm, config.lr_decay_iterations) == (2.0, 5.0, 7)
     assert config.actor_hidden == (16, 8)
     assert config.actor_backward_chunk == 0  # None was the kept backward passes; they go on resume
@@ -135,7 +154,9 @@ def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tm
     spec = json.loads((run_dir / "run.json").read_text())
     spec["config"]["abort_grad_norm"] = 1e-9  # every gradient now counts as exploding
     (run_dir / "run.json").write_text(json.dumps(spec))
-    with pytest.raises(TrainingDiverged, match=r"actor gradient norm .* is NaN or above abort_grad_norm = 1e-09 at iteration 3"):
+    with pytest.raises(
+        TrainingDiverged, match=r"actor gradient norm .* is NaN or above abort_grad_norm = 1e-09 at iteration 3"
+    ):
         train("cartpole_swingup", iterations=5, run_dir=run_dir, resume=True, checkpoint_every=1)
     assert checkpoint_manager(run_dir).latest_step() == 2
     assert [int(r["iteration"]) for r in rows(run_dir)] == [0, 1, 2]
@@ -144,10 +165,26 @@ def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tm
 def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
     """DrQ-v2 through the same loop: its replay buffer is part of the checkpointed state."""
     run_dir = tmp_path / "run"
-    tiny = dict(num_envs=2, image_size=16, batch_size=4, hidden=(8,), feature_dim=8, replay_size=64, seed_steps=4,
-                updates_per_iteration=1)
-    train("cartpole_balance", "drqv2", preset="cpu", iterations=2, run_dir=run_dir, eval_every=2,
-          checkpoint_every=2, **tiny)
+    tiny = dict(
+        num_envs=2,
+        image_size=16,
+        batch_size=4,
+        hidden=(8,),
+        feature_dim=8,
+        replay_size=64,
+        seed_steps=4,
+        updates_per_iteration=1,
+    )
+    train(
+        "cartpole_balance",
+        "drqv2",
+        preset="cpu",
+        iterations=2,
+        run_dir=run_dir,
+        eval_every=2,
+        checkpoint_every=2,
+        **tiny,
+    )
     train("cartpole_balance", iterations=2, run_dir=run_dir, resume=True, eval_every=4, checkpoint_every=4)
     log = rows(run_dir)
     assert [int(r["iteration"]) for r in log] == list(range(5))
@@ -164,19 +201,45 @@ def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
 def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
     # The teacher's config is the earlier tests' (SMALL on swing-up): its agent and compiled
     # iteration are reused from them (training._agent), as a resume would.
-    teacher = train("cartpole_swingup", "shac", preset="cpu", iterations=2, run_dir=tmp_path / "teacher",
-                    eval_every=None, **SMALL)
+    teacher = train(
+        "cartpole_swingup", "shac", preset="cpu", iterations=2, run_dir=tmp_path / "teacher", eval_every=None, **SMALL
+    )
     teacher_end = rows(teacher)[-1]
-    student = train("cartpole_swingup", "dagger", preset="cpu", iterations=2, run_dir=tmp_path / "student",
-                    eval_every=2, teacher=str(teacher), num_envs=4, horizon=8, image_size=16, batch_size=16,
-                    replay_size=200, updates_per_iteration=1, actor_hidden=(16,), trunk=16)
+    student = train(
+        "cartpole_swingup",
+        "dagger",
+        preset="cpu",
+        iterations=2,
+        run_dir=tmp_path / "student",
+        eval_every=2,
+        teacher=str(teacher),
+        num_envs=4,
+        horizon=8,
+        image_size=16,
+        batch_size=16,
+        replay_size=200,
+        updates_per_iteration=1,
+        actor_hidden=(16,),
+        trunk=16,
+    )
     log = rows(student)
     assert [int(r["env_steps"]) for r in log] == [int(teacher_end["env_steps"]) + 32 * i for i in range(3)]
     assert float(log[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
     assert float(log[-1]["wall_time"]) > float(teacher_end["wall_time"]) and log[-1]["bc_loss"] != ""
     with pytest.raises(ValueError, match="DAgger needs a teacher on the state"):
-        train("cartpole_swingup", "dagger", preset="cpu", iterations=1, run_dir=tmp_path / "bad", teacher=str(student),
-              num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200)
+        train(
+            "cartpole_swingup",
+            "dagger",
+            preset="cpu",
+            iterations=1,
+            run_dir=tmp_path / "bad",
+            teacher=str(student),
+            num_envs=4,
+            horizon=8,
+            image_size=16,
+            batch_size=16,
+            replay_size=200,
+        )
 
     # A teacher trained within the same call (here a stand-in that takes 2 s) is counted once: the
     # student's clock starts at the teacher's logged end, not 2 s later.
@@ -185,7 +248,19 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
         return dataclasses.replace(config, teacher=str(teacher))
 
     monkeypatch.setitem(ALGORITHMS, "dagger", dataclasses.replace(ALGORITHMS["dagger"], prepare=train_teacher))
-    in_call = train("cartpole_swingup", "dagger", preset="cpu", iterations=0, run_dir=tmp_path / "in_call",
-                    eval_every=None, num_envs=4, horizon=8, image_size=16, batch_size=16, replay_size=200,
-                    actor_hidden=(16,), trunk=16)
+    in_call = train(
+        "cartpole_swingup",
+        "dagger",
+        preset="cpu",
+        iterations=0,
+        run_dir=tmp_path / "in_call",
+        eval_every=None,
+        num_envs=4,
+        horizon=8,
+        image_size=16,
+        batch_size=16,
+        replay_size=200,
+        actor_hidden=(16,),
+        trunk=16,
+    )
     assert float(rows(in_call)[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))

@@ -30,14 +30,18 @@ class TasksCommand:
     def run(self) -> None:
         from dva.tasks import make_task
 
-        print(f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'physics':>9}{'substeps':>10}  "
-              f"{'contact ke / kd / kf / mu':<28}pixel camera")
+        print(
+            f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'physics':>9}{'substeps':>10}  "
+            f"{'contact ke / kd / kf / mu':<28}pixel camera"
+        )
         for name in TASKS:
             task = make_task(name)
             c = task.penalty_contact
             contact = f"{c.ke:g} / {c.kd:g} / {c.kf:g} / {c.mu:g}" if len(task.contact_points.body) else "none"
-            print(f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{task.physics:>9}"
-                  f"{task.substeps:>10}  {contact:<28}{task.camera}")
+            print(
+                f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{task.physics:>9}"
+                f"{task.substeps:>10}  {contact:<28}{task.camera}"
+            )
 
 
 @dataclasses.dataclass
@@ -87,8 +91,11 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = (), aliases: d
         optional = Optional[hints[name]]
         return Annotated[optional, tyro.conf.arg(aliases=(aliases[name],))] if name in aliases else optional
 
-    fields = [(field.name, flag_type(field.name), dataclasses.field(default=None))
-              for field in dataclasses.fields(config_type) if field.name not in exclude]
+    fields = [
+        (field.name, flag_type(field.name), dataclasses.field(default=None))
+        for field in dataclasses.fields(config_type)
+        if field.name not in exclude
+    ]
     overrides = dataclasses.make_dataclass(f"{config_type.__name__}Overrides", fields, frozen=True)
     overrides.__doc__ = f"{config_type.__doc__.strip()} Unset: the preset's value."
     return overrides
@@ -99,8 +106,13 @@ DrQV2Overrides = optional_fields(DrQV2Config)
 CURLOverrides = optional_fields(CURLConfig)
 DAggerOverrides = optional_fields(DAggerConfig, aliases={"teacher": "--teacher"})
 DreamerV3Overrides = optional_fields(DreamerV3Config, exclude=("frame_stack",))
-CONFIG_GROUPS = {"shac": SHACConfig, "drqv2": DrQV2Config, "curl": CURLConfig, "dagger": DAggerConfig,
-                 "dreamerv3": DreamerV3Config}  # TrainCommand field → the config it overrides
+CONFIG_GROUPS = {
+    "shac": SHACConfig,
+    "drqv2": DrQV2Config,
+    "curl": CURLConfig,
+    "dagger": DAggerConfig,
+    "dreamerv3": DreamerV3Config,
+}  # TrainCommand field → the config it overrides
 
 
 @dataclasses.dataclass
@@ -113,7 +125,7 @@ class TrainCommand:
     algo: AlgoName = "dva"
     """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl | dagger | dreamerv3"""
     preset: PresetName = "cpu"
-    """paper (spec Table 7) | cpu (fewer envs, smaller images)"""
+    """paper (the paper's hyperparameters) | cpu (fewer envs, smaller images)"""
     seed: int = 0
     iterations: int | None = None
     """Stop after this many iterations (default: the config's lr_decay_iterations)."""
@@ -165,12 +177,22 @@ class TrainCommand:
             if self.resume:
                 raise ValueError("--resume needs --run-dir: the run to continue")
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-        run_dir = train(self.task, self.algo, preset=self.preset, seed=self.seed, iterations=self.iterations,
-                        minutes=self.minutes, run_dir=self.run_dir, resume=self.resume, eval_every=self.eval_every,
-                        eval_minutes=self.eval_minutes,
-                        checkpoint_every=self.checkpoint_every,
-                        checkpoint_minutes=self.checkpoint_minutes, physics=self.physics,
-                        **self.config_overrides())
+        run_dir = train(
+            self.task,
+            self.algo,
+            preset=self.preset,
+            seed=self.seed,
+            iterations=self.iterations,
+            minutes=self.minutes,
+            run_dir=self.run_dir,
+            resume=self.resume,
+            eval_every=self.eval_every,
+            eval_minutes=self.eval_minutes,
+            checkpoint_every=self.checkpoint_every,
+            checkpoint_minutes=self.checkpoint_minutes,
+            physics=self.physics,
+            **self.config_overrides(),
+        )
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()
@@ -201,12 +223,21 @@ class EvalCommand:
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
         task = make_task(spec.task, spec.physics)
         random = random_policy_returns(task, jax.random.PRNGKey(self.seed), len(returns))
-        print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
-              f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "
-              f"random actions: {np.mean(random):.1f} ± {np.std(random):.1f}")
+        print(
+            f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
+            f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "
+            f"random actions: {np.mean(random):.1f} ± {np.std(random):.1f}"
+        )
         if self.video is not None:
-            policy_video(self.video, task, qpos, camera, self.video_envs, self.video_size,
-                         action_repeat=spec.config.get("action_repeat", 1))
+            policy_video(
+                self.video,
+                task,
+                qpos,
+                camera,
+                self.video_envs,
+                self.video_size,
+                action_repeat=spec.config.get("action_repeat", 1),
+            )
             print(f"wrote {self.video}")
 
 
@@ -262,8 +293,17 @@ class CompareCommand:
         from dva.analysis.compare import compare
 
         out = self.out / self.figure
-        paths, markdown = compare(self.figure, self.tasks, self.seeds, self.minutes, out, self.preset, self.threshold,
-                                  self.workers, self.frames)
+        paths, markdown = compare(
+            self.figure,
+            self.tasks,
+            self.seeds,
+            self.minutes,
+            out,
+            self.preset,
+            self.threshold,
+            self.workers,
+            self.frames,
+        )
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 
@@ -312,8 +352,9 @@ class GradientsAnalysis:
     def run(self) -> None:
         from dva.analysis.gradients import compare_gradients, write_gradient_report
 
-        rows = compare_gradients(self.task, self.iterations, self.every, self.seed,
-                                 num_envs=self.num_envs, horizon=self.horizon)
+        rows = compare_gradients(
+            self.task, self.iterations, self.every, self.seed, num_envs=self.num_envs, horizon=self.horizon
+        )
         title = f"SHAC on {self.task} (state observations, seed {self.seed}): APG vs DPG"
         print_report(write_gradient_report(rows, self.out / f"gradients_{self.task}", title))
 
@@ -361,10 +402,13 @@ class CostAnalysis:
         from dva.rendering import check_image_size
 
         check_image_size(self.image_size, self.image_size)  # fail before any compile
-        rows = measure_costs(self.tasks, self.num_envs, self.horizon, self.image_size, self.seed, self.chunk, self.kept,
-                             self.timing)
-        title = (f"one actor gradient, {self.num_envs} envs × {self.horizon} steps, {self.image_size}² pixels; "
-                 f"{machine_description()}")
+        rows = measure_costs(
+            self.tasks, self.num_envs, self.horizon, self.image_size, self.seed, self.chunk, self.kept, self.timing
+        )
+        title = (
+            f"one actor gradient, {self.num_envs} envs × {self.horizon} steps, {self.image_size}² pixels; "
+            f"{machine_description()}"
+        )
         print_report(*write_cost_report(rows, self.out / "cost", title))
 
 
@@ -375,7 +419,7 @@ class BreakdownAnalysis(SizeOverrides):
 
     task: str = "ant"
     preset: str = "cpu"
-    """paper (spec Table 7) | cpu"""
+    """paper (the paper's hyperparameters) | cpu"""
     algo: str = "dva"
 
     def run(self) -> None:
@@ -383,16 +427,21 @@ class BreakdownAnalysis(SizeOverrides):
         from dva.analysis.breakdown import measure_iteration, write_breakdown_report
 
         config, times = measure_iteration(self.task, self.algo, self.preset, self.seed, **self.overrides())
-        title = (f"{self.algo} on {self.task}: {config.num_envs} envs × {config.horizon} steps"
-                 + (f", {config.image_size}² pixels" if config.observation == "pixels" else "")
-                 + f"; {machine_description()}")
+        title = (
+            f"{self.algo} on {self.task}: {config.num_envs} envs × {config.horizon} steps"
+            + (f", {config.image_size}² pixels" if config.observation == "pixels" else "")
+            + f"; {machine_description()}"
+        )
         print_report(*write_breakdown_report(config, times, self.out / f"breakdown_{self.task}", title))
 
 
-ANALYSES = {"gradients": GradientsAnalysis, "gradnorm": GradnormAnalysis, "cost": CostAnalysis,
-            "breakdown": BreakdownAnalysis}
-AnalyzeCommand = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)]
-                             for name, cls in ANALYSES.items())]
+ANALYSES = {
+    "gradients": GradientsAnalysis,
+    "gradnorm": GradnormAnalysis,
+    "cost": CostAnalysis,
+    "breakdown": BreakdownAnalysis,
+}
+AnalyzeCommand = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in ANALYSES.items())]
 # A Union has no docstring of its own: without this, ``dva --help`` would print typing.Union's.
 ANALYZE_HELP = "The analyses behind the method (gradients, gradnorm, cost, breakdown), each writing a PNG and a table."
 
@@ -412,9 +461,17 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``dva`` console script."""
     # As tyro.extras.subcommand_cli_from_dict, but with the analyze group's description set.
     command = tyro.cli(
-        Union[tuple(Annotated[Any, tyro.conf.subcommand(name=name, constructor=cls,
-                                                        description=ANALYZE_HELP if name == "analyze" else None)]
-                    for name, cls in COMMANDS.items())],
+        Union[
+            tuple(
+                Annotated[
+                    Any,
+                    tyro.conf.subcommand(
+                        name=name, constructor=cls, description=ANALYZE_HELP if name == "analyze" else None
+                    ),
+                ]
+                for name, cls in COMMANDS.items()
+            )
+        ],
         args=argv,
         prog="dva",
     )
@@ -429,8 +486,9 @@ def main(argv: list[str] | None = None) -> None:
         print(f"dva: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
     except TrainingDiverged as error:  # not a bug in dva: say what happened and what to try
-        print(f"dva: training stopped: {error}. Resume from that checkpoint (--resume) with a "
-              "lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip.", file=sys.stderr)
+        algo = getattr(command, "algo", None)
+        hint = ALGORITHMS[algo].divergence_hint if algo in ALGORITHMS else "lower learning rates"
+        print(f"dva: training stopped: {error}. Resume from that checkpoint (--resume) with {hint}.", file=sys.stderr)
         raise SystemExit(3) from None
 
 

@@ -9,35 +9,78 @@ PresetName = Literal["paper", "cpu"]
 PRESETS: tuple[str, ...] = ("paper", "cpu")
 
 # ---- the short-horizon actor-critic family (D.Va, SHAC, DPG on state, visual SHAC) -----------------
-# Spec §1, Table 7 (+ epochs from the ref. code, as the learning-rate decay length). Half-Cheetah
+# The paper's Table 7 (+ epochs from its code, as the learning-rate decay length). Half-Cheetah
 # and the quadruped use the Hopper/Ant rows, Cart-pole balance the swing-up's (the paper gives
 # none of their own).
 SHAC_PAPER: dict[str, dict] = {
-    "cartpole_swingup": dict(trunk=64, actor_hidden=(64, 64), critic_hidden=(64, 64), critic_lr=2e-4,
-                             target_alpha=0.2, lr_decay_iterations=4000),
-    "cartpole_balance": dict(trunk=64, actor_hidden=(64, 64), critic_hidden=(64, 64), critic_lr=2e-4,
-                             target_alpha=0.2, lr_decay_iterations=4000),
-    "hopper": dict(trunk=128, actor_hidden=(128, 64, 32), critic_hidden=(64, 64), critic_lr=2e-4,
-                   target_alpha=0.2, lr_decay_iterations=30000),
-    "cheetah": dict(trunk=128, actor_hidden=(128, 64, 32), critic_hidden=(64, 64), critic_lr=2e-4,
-                    target_alpha=0.2, lr_decay_iterations=30000),
-    "ant": dict(trunk=128, actor_hidden=(128, 64, 32), critic_hidden=(64, 64), critic_lr=2e-3,
-                target_alpha=0.2, lr_decay_iterations=30000),
-    "quadruped": dict(trunk=128, actor_hidden=(128, 64, 32), critic_hidden=(64, 64), critic_lr=2e-3,
-                      target_alpha=0.2, lr_decay_iterations=30000),
-    "humanoid": dict(trunk=256, actor_hidden=(256, 128), critic_hidden=(128, 128), critic_lr=5e-4,
-                     target_alpha=0.995, lr_decay_iterations=60000),
+    "cartpole_swingup": dict(
+        trunk=64,
+        actor_hidden=(64, 64),
+        critic_hidden=(64, 64),
+        critic_lr=2e-4,
+        target_alpha=0.2,
+        lr_decay_iterations=4000,
+    ),
+    "cartpole_balance": dict(
+        trunk=64,
+        actor_hidden=(64, 64),
+        critic_hidden=(64, 64),
+        critic_lr=2e-4,
+        target_alpha=0.2,
+        lr_decay_iterations=4000,
+    ),
+    "hopper": dict(
+        trunk=128,
+        actor_hidden=(128, 64, 32),
+        critic_hidden=(64, 64),
+        critic_lr=2e-4,
+        target_alpha=0.2,
+        lr_decay_iterations=30000,
+    ),
+    "cheetah": dict(
+        trunk=128,
+        actor_hidden=(128, 64, 32),
+        critic_hidden=(64, 64),
+        critic_lr=2e-4,
+        target_alpha=0.2,
+        lr_decay_iterations=30000,
+    ),
+    "ant": dict(
+        trunk=128,
+        actor_hidden=(128, 64, 32),
+        critic_hidden=(64, 64),
+        critic_lr=2e-3,
+        target_alpha=0.2,
+        lr_decay_iterations=30000,
+    ),
+    "quadruped": dict(
+        trunk=128,
+        actor_hidden=(128, 64, 32),
+        critic_hidden=(64, 64),
+        critic_lr=2e-3,
+        target_alpha=0.2,
+        lr_decay_iterations=30000,
+    ),
+    "humanoid": dict(
+        trunk=256,
+        actor_hidden=(256, 128),
+        critic_hidden=(128, 128),
+        critic_lr=5e-4,
+        target_alpha=0.995,
+        lr_decay_iterations=60000,
+    ),
 }
 # SHAC on the state decays its learning rates over its reference runs' 2000 iterations (the rows
 # above are D.Va's, whose pixel actors train for longer).
 LEGGED_TASKS = ("hopper", "cheetah", "ant", "humanoid", "quadruped")
 SHAC_STATE_PAPER: dict[str, dict] = {task: dict(lr_decay_iterations=2000) for task in LEGGED_TASKS}
-# Visual SHAC's own horizons and env counts (spec §3: 32/32/8/32 steps, 64/64/32/32 envs).
+# Visual SHAC's own horizons and env counts (the paper's: 32/32/8/32 steps, 64/64/32/32 envs on
+# Cart-pole/Hopper/Ant/Humanoid).
 VISUAL_SHAC_PAPER: dict[str, dict] = {"ant": dict(horizon=8, num_envs=32), "humanoid": dict(num_envs=32)}
 # What a 2-core CPU can afford: the same method and networks, fewer envs, smaller images (the
-# conv encoder dominates an iteration on CPU, spec §6) and a 16-step horizon: half the cost per
+# conv encoder dominates an iteration on CPU; docs/results.md) and a 16-step horizon: half the cost per
 # iteration and twice the updates per env step (Cart-pole from pixels: return 600-900 after
-# 100k steps, where h = 32 was still at the collapsed ~110; benchmarks/RESULTS.md).
+# 100k steps, where h = 32 was still at the collapsed ~110).
 SHAC_CPU = dict(num_envs=16, image_size=48, horizon=16, lr_decay_iterations=1000)
 # The legged robots learn for longer: a 1000-iteration decay left SHAC on Hopper (state) at the
 # final learning rate after 4 of its 30 minutes, its evaluations stuck at 1000–1500 after a 3052
@@ -45,7 +88,7 @@ SHAC_CPU = dict(num_envs=16, image_size=48, horizon=16, lr_decay_iterations=1000
 SHAC_CPU_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=4000) for task in LEGGED_TASKS}
 # An actor on pixels needs more iterations than one on the state: D.Va on Hopper with the 4000
 # decay reached 1541 / 1056 / 747 in 2 hours (seeds 1 / 2 / 0), with a decay over 7000
-# iterations 3783 / 1136 (seeds 4 / 3; benchmarks/RESULTS.md) — an iteration takes ≈ 1 s on 2 cores.
+# iterations 3783 / 1136 (seeds 4 / 3, measured on the previous Hopper model) — an iteration takes ≈ 1 s on 2 cores.
 SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=7000) for task in LEGGED_TASKS}
 
 
@@ -55,7 +98,7 @@ SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=7000) fo
 # tuned, are in [0, 1]. Their critics therefore learn 0.1 × the reward (returns are logged unscaled).
 OFF_POLICY_REWARD_SCALE = 0.1
 
-# ---- DrQ-v2 (spec §3) ----------------------------------------------------------------------------
+# ---- DrQ-v2 (docs/algorithms.md) ----------------------------------------------------------------------
 DRQV2_PAPER: dict[str, dict] = {
     "cartpole_swingup": dict(num_envs=16, updates_per_iteration=8),
     "cartpole_balance": dict(num_envs=16, updates_per_iteration=8),
@@ -68,8 +111,15 @@ DRQV2_PAPER: dict[str, dict] = {
 # per round (one per 4 env steps; DrQ-v2's is one per 2), 256-wide MLPs, a 100k-step replay
 # (690 MB of 48² frames) and the std decay over the 20k env steps a 20-minute run takes (over
 # 100k the first runs' exploration was still std 0.9 at their end, their policy untrained).
-DRQV2_CPU = dict(num_envs=16, image_size=48, batch_size=64, updates_per_iteration=8, hidden=(256, 256),
-                 replay_size=100_000, std_decay_steps=20_000)
+DRQV2_CPU = dict(
+    num_envs=16,
+    image_size=48,
+    batch_size=64,
+    updates_per_iteration=8,
+    hidden=(256, 256),
+    replay_size=100_000,
+    std_decay_steps=20_000,
+)
 
 
 def drqv2_preset(task: str, preset: str) -> dict:
@@ -77,7 +127,7 @@ def drqv2_preset(task: str, preset: str) -> dict:
     return dict(DRQV2_PAPER[task], reward_scale=OFF_POLICY_REWARD_SCALE, **(DRQV2_CPU if preset == "cpu" else {}))
 
 
-# ---- CURL (spec §3) -------------------------------------------------------------------------------
+# ---- CURL (docs/algorithms.md) ---------------------------------------------------------------------------
 # The paper's settings are the same on every task. The CPU preset, like DrQ-v2's: 48² images,
 # 4 updates per round, 256-wide MLPs.
 CURL_CPU = dict(image_size=48, updates_per_iteration=4, hidden=(256, 256))
@@ -88,7 +138,7 @@ def curl_preset(task: str, preset: str) -> dict:
     return dict(CURL_CPU if preset == "cpu" else {}, reward_scale=OFF_POLICY_REWARD_SCALE)
 
 
-# ---- DreamerV3 (spec §3) --------------------------------------------------------------------------
+# ---- DreamerV3 (docs/algorithms.md) --------------------------------------------------------------------
 # The paper's settings are the same on every task (network sizes: the reference's "S" model). The
 # CPU preset keeps the method — RSSM with 32 × 32 categorical latents and unimix, symlog two-hot
 # heads, free bits, λ-returns with return normalisation, the slow critic, 4 envs — at a size a
@@ -97,8 +147,16 @@ def curl_preset(task: str, preset: str) -> dict:
 # depth 16 and 8 × 32 sequences 3.4 s, at 48² (the other CPU presets' size) 2.2 s. So: that
 # model, and a train ratio of 16 (one update per 4 steps of the 4 envs, 32 env steps: ≈ 14 env
 # steps/s, DrQ-v2's CPU pace; the paper's 512 would be 0.5 env steps/s), a 100k-step replay.
-DREAMERV3_CPU = dict(deter=128, units=128, cnn_depth=16, image_size=48, batch_size=8, batch_length=32,
-                     train_ratio=16.0, replay_size=100_000)
+DREAMERV3_CPU = dict(
+    deter=128,
+    units=128,
+    cnn_depth=16,
+    image_size=48,
+    batch_size=8,
+    batch_length=32,
+    train_ratio=16.0,
+    replay_size=100_000,
+)
 
 
 def dreamerv3_preset(task: str, preset: str) -> dict:
@@ -106,7 +164,7 @@ def dreamerv3_preset(task: str, preset: str) -> dict:
     return dict(DREAMERV3_CPU) if preset == "cpu" else {}
 
 
-# ---- state-to-visual DAgger (spec §3) -------------------------------------------------------------
+# ---- state-to-visual DAgger (docs/algorithms.md) -------------------------------------------------------
 # The student has D.Va's networks for the task (SHAC_PAPER's trunk and actor); the paper's 64 envs
 # × 32 steps, or the CPU preset's 16 × 16 at 48² with a 20k-observation replay (415 MB).
 DAGGER_CPU = dict(num_envs=16, horizon=16, image_size=48, replay_size=20_000, updates_per_iteration=8)

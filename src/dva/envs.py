@@ -44,8 +44,9 @@ class PixelObservations:
     (their rewards are not counted).
     """
 
-    def __init__(self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3,
-                 action_repeat: int = 1) -> None:
+    def __init__(
+        self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3, action_repeat: int = 1
+    ) -> None:
         if renderer is not None and renderer.num_envs != num_envs:
             raise ValueError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
         for name, value in (("frame_stack", frame_stack), ("action_repeat", action_repeat)):

@@ -18,8 +18,7 @@ from dva.tasks import Task
 Policy = Callable[[Observation, Any, jax.Array], tuple[jax.Array, Any]]
 
 
-def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, record: bool = False,
-                    memory: Any = ()):
+def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, record: bool = False, memory: Any = ()):
     """Undiscounted return of one full episode per env under ``policy``, starting from ``memory``: (N,).
 
     Episodes that end early stop counting (the auto-reset continues them unseen). With

@@ -1,6 +1,7 @@
-"""Networks (spec §1, §3): the DrQ-v2 pixel encoder every pixel algorithm shares; D.Va / SHAC's
+"""Networks (docs/algorithms.md): the DrQ-v2 pixel encoder every pixel algorithm shares; D.Va / SHAC's
 ELU+LayerNorm MLPs, Gaussian actor with a state-independent log-std and state critic; DrQ-v2's
-deterministic actor and twin Q critic; CURL's squashed-Gaussian actor and projection; DreamerV3's conv encoder and decoder, RSSM
+deterministic actor and twin Q critic; CURL's squashed-Gaussian actor and projection; DreamerV3's conv encoder
+and decoder, RSSM
 and heads; running mean/std statistics."""
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-
 CONV_DIMENSIONS = ("NHWC", "HWIO", "NHWC")
 
 
@@ -25,15 +25,28 @@ def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     dimension orders, which its CPU backend runs 20× (input) to 185× (kernel) slower inside a
     loop body — a ``lax.scan`` over chunks, a reverse scan through the rollout, a scan of updates
     — than at the top level (jax-ml/jax#12868); written as NHWC × HWIO forward convolutions they
-    run at full speed in both (``benchmarks/RESULTS.md``, "Convolution gradients inside loops").
+    run at full speed in both (docs/development.md, "CPU speed notes").
     A ``custom_vjp``: reverse mode only (``jax.jvp`` through it raises)."""
     return _conv(x, kernel, stride)
 
 
-def _conv(x: jax.Array, kernel: jax.Array, stride: int, lhs_dilation: int = 1, rhs_dilation: int = 1,
-          padding: str | Sequence[tuple[int, int]] = "VALID") -> jax.Array:
-    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), padding, (lhs_dilation,) * 2,
-                                        (rhs_dilation,) * 2, dimension_numbers=CONV_DIMENSIONS)
+def _conv(
+    x: jax.Array,
+    kernel: jax.Array,
+    stride: int,
+    lhs_dilation: int = 1,
+    rhs_dilation: int = 1,
+    padding: str | Sequence[tuple[int, int]] = "VALID",
+) -> jax.Array:
+    return jax.lax.conv_general_dilated(
+        x,
+        kernel,
+        (stride, stride),
+        padding,
+        (lhs_dilation,) * 2,
+        (rhs_dilation,) * 2,
+        dimension_numbers=CONV_DIMENSIONS,
+    )
 
 
 def _conv_valid_forward(x, kernel, stride):
@@ -47,8 +60,9 @@ def _conv_valid_backward(stride, residuals, out_grad):
     used_h, used_w = (out_h - 1) * stride + size_h, (out_w - 1) * stride + size_w  # rows a stride skips at the end
     # dK[i, j, c, o] = Σ_{n,y,x} x[n, s·y + i, s·x + j, c] · g[n, y, x, o]: images as channels,
     # channels as images, the output gradient as a kernel dilated by the stride.
-    kernel_grad = _conv(x[:, :used_h, :used_w].transpose(3, 1, 2, 0), out_grad.transpose(1, 2, 0, 3), 1,
-                        rhs_dilation=stride).transpose(1, 2, 0, 3)
+    kernel_grad = _conv(
+        x[:, :used_h, :used_w].transpose(3, 1, 2, 0), out_grad.transpose(1, 2, 0, 3), 1, rhs_dilation=stride
+    ).transpose(1, 2, 0, 3)
     # dx: the output gradient dilated by the stride, fully padded, against the flipped kernel.
     flipped = jnp.flip(kernel, (0, 1)).transpose(0, 1, 3, 2)
     padding = [(size_h - 1, size_h - 1 + x.shape[1] - used_h), (size_w - 1, size_w - 1 + x.shape[2] - used_w)]
@@ -74,7 +88,9 @@ class Conv(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.size, self.size, x.shape[-1], self.features))
+        kernel = self.param(
+            "kernel", nn.initializers.lecun_normal(), (self.size, self.size, x.shape[-1], self.features)
+        )
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         return conv_valid(x, kernel, self.stride) + bias
 
@@ -252,7 +268,7 @@ def strided_conv4(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """``nn.Conv(…, (4, 4), (2, 2), "SAME")`` without its bias, for even sizes: the padded input's
     2×2 blocks become channels, so the 4×4 stride-2 convolution is a 2×2 stride-1 one with the
     same multiply-adds, whose gradients XLA computes faster on the CPU than its strided
-    convolution's (``benchmarks/dreamer_update.py``; ``benchmarks/RESULTS.md``, DreamerV3)."""
+    convolution's (``benchmarks/dreamer_update.py``)."""
     channels, features = kernel.shape[2:]
     # kernel[2a + b, 2a' + b'] multiplies block (y + a, y' + a')'s pixel (b, b')
     blocked = kernel.reshape(2, 2, 2, 2, channels, features).transpose(0, 2, 1, 3, 4, 5)
@@ -265,8 +281,10 @@ def strided_conv4_transpose(x: jax.Array, kernel: jax.Array) -> jax.Array:
     with the kernel taps ``kernel[r::2, c::2]``: no multiply-add touches the zeros of XLA's
     input-dilated convolution, three quarters of its input."""
     padded, (n, height, width), features = _pad_one(x), x.shape[:3], kernel.shape[-1]
-    phases = [[conv_valid(padded[:, r: r + height + 1, c: c + width + 1], kernel[r::2, c::2], 1) for c in (0, 1)]
-              for r in (0, 1)]  # output pixel (2m + r, 2m' + c) reads input rows m + r − 1 + (0, 1)
+    phases = [
+        [conv_valid(padded[:, r : r + height + 1, c : c + width + 1], kernel[r::2, c::2], 1) for c in (0, 1)]
+        for r in (0, 1)
+    ]  # output pixel (2m + r, 2m' + c) reads input rows m + r − 1 + (0, 1)
     interleaved = jnp.stack([jnp.stack(row, axis=3) for row in phases], axis=2)  # (N, H, r, W, c, F)
     return interleaved.reshape(n, 2 * height, 2 * width, features)
 
@@ -282,8 +300,7 @@ class StridedConv4(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         if not self.transpose and (x.shape[1] % 2 or x.shape[2] % 2):
-            raise ValueError(f"image size {x.shape[1:3]} is not allowed for a stride-2 4×4 convolution; "
-                             "use even sizes")
+            raise ValueError(f"image size {x.shape[1:3]} is not allowed for a stride-2 4×4 convolution; use even sizes")
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (4, 4, x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         return (strided_conv4_transpose if self.transpose else strided_conv4)(x, kernel) + bias

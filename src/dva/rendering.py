@@ -32,6 +32,17 @@ def check_image_size(width: int, height: int) -> None:
             )
 
 
+def require_warp() -> None:
+    """A one-line error naming the extra when the Warp renderer's packages are missing."""
+    try:
+        import mujoco_warp  # noqa: F401
+        import warp  # noqa: F401
+    except ImportError as error:
+        raise ImportError(
+            f"the Warp pixel renderer needs the 'pixels' extra: pip install 'dva[pixels]' ({error})"
+        ) from None
+
+
 def scene_poses(task: Task, qpos: jax.Array) -> mjx.Data:
     """Forward kinematics (JAX, differentiable) of a batch of ``qpos``: geom and camera poses."""
     model = task.model
@@ -69,6 +80,7 @@ class PixelRenderer:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
+        require_warp()
         # A copy whose solver may iterate: only the template's one forward pass below uses it, and
         # with the task's single iteration Warp prints an overflow warning per contact-rich model.
         mjm = copy.copy(task.mj_model)
@@ -79,9 +91,16 @@ class PixelRenderer:
         # Lights are directional and attached to the world, so the template's light poses stay valid.
         self._template = jax.jit(jax.vmap(mjx.forward, in_axes=(None, 0)))(self._warp_model, self._template)
         self._context = mjx.create_render_context(
-            mjm=mjm, nworld=num_envs, cam_res=(width, height), render_rgb=True, render_depth=depth,
-            cam_active=[task.camera], use_textures=True, use_shadows=False,
-            samples_per_pixel=samples_per_pixel, background_color=(*SKY_COLOR, 1.0),
+            mjm=mjm,
+            nworld=num_envs,
+            cam_res=(width, height),
+            render_rgb=True,
+            render_depth=depth,
+            cam_active=[task.camera],
+            use_textures=True,
+            use_shadows=False,
+            samples_per_pixel=samples_per_pixel,
+            background_color=(*SKY_COLOR, 1.0),
         )
         self._camera_slot = 0  # only the pixel camera is active in the context
 
@@ -107,8 +126,11 @@ class PixelRenderer:
             )
         poses = scene_poses(self.task, jax.lax.stop_gradient(qpos))
         warp_data = self._template.replace(
-            qpos=poses.qpos, geom_xpos=poses.geom_xpos, geom_xmat=poses.geom_xmat,
-            cam_xpos=poses.cam_xpos, cam_xmat=poses.cam_xmat,
+            qpos=poses.qpos,
+            geom_xpos=poses.geom_xpos,
+            geom_xmat=poses.geom_xmat,
+            cam_xpos=poses.cam_xpos,
+            cam_xmat=poses.cam_xmat,
         )
         context = self._context.pytree()
         warp_data = mjx.refit_bvh(self._warp_model, warp_data, context)

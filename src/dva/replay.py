@@ -58,8 +58,13 @@ class SequenceReplay:
             raise ValueError(f"replay capacity {capacity} is too small for {num_envs} envs × {length}-step sequences")
         self.sequence_length = length
         self.buffer = flashbax.make_trajectory_buffer(
-            add_batch_size=num_envs, sample_batch_size=batch_size, sample_sequence_length=length,
-            period=1, min_length_time_axis=length, max_length_time_axis=capacity // num_envs)
+            add_batch_size=num_envs,
+            sample_batch_size=batch_size,
+            sample_sequence_length=length,
+            period=1,
+            min_length_time_axis=length,
+            max_length_time_axis=capacity // num_envs,
+        )
 
     def init(self, example: Step):
         """An empty buffer for steps shaped like ``example`` (one env's step, no leading axis)."""
@@ -81,8 +86,9 @@ class FrameReplay(SequenceReplay):
     """A :class:`SequenceReplay` of single frames that samples ``batch_size`` n-step transitions
     with their frame stacks rebuilt."""
 
-    def __init__(self, num_envs: int, capacity: int, batch_size: int, frame_stack: int, n_step: int,
-                 gamma: float) -> None:
+    def __init__(
+        self, num_envs: int, capacity: int, batch_size: int, frame_stack: int, n_step: int, gamma: float
+    ) -> None:
         self.frame_stack, self.n_step, self.gamma = frame_stack, n_step, gamma
         super().__init__(num_envs, capacity, batch_size, frame_stack - 1 + n_step + 1)
 
@@ -98,6 +104,10 @@ class FrameReplay(SequenceReplay):
             valid = valid & ~(alive & steps.truncated[t + i])
             alive = alive & ~(steps.terminated[t + i] | steps.truncated[t + i])
         return NStepBatch(
-            obs=stack_at(steps.frame, steps.first, t, self.frame_stack), action=steps.action[t],
-            reward=reward, discount=jnp.where(alive, self.gamma**self.n_step, 0.0),
-            next_obs=stack_at(steps.frame, steps.first, t + self.n_step, self.frame_stack), valid=valid)
+            obs=stack_at(steps.frame, steps.first, t, self.frame_stack),
+            action=steps.action[t],
+            reward=reward,
+            discount=jnp.where(alive, self.gamma**self.n_step, 0.0),
+            next_obs=stack_at(steps.frame, steps.first, t + self.n_step, self.frame_stack),
+            valid=valid,
+        )

@@ -18,7 +18,7 @@ def cache_root() -> Path:
 
 # XLA (jaxlib 0.10) hands unpadded convolutions to YNNPACK on the CPU, which runs the encoder's
 # 3×3 × 32-channel layers at ≈ 18 GFLOP/s forward; with YNN's fusions off they run in XLA's Eigen
-# kernels at ≈ 110 (benchmarks/RESULTS.md, "XLA's CPU convolutions"). CPU-only: GPUs ignore it.
+# kernels at ≈ 110 (docs/development.md, "CPU speed notes"). CPU-only: GPUs ignore it.
 YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
 CPU_FLAGS = f"--{YNN_FUSION_FLAG}="  # an empty list: no YNN fusions
 

@@ -21,20 +21,24 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from dva.rendering import MAX_DEPTH, SKY_COLOR, check_image_size, scene_poses
 from dva.tasks import Task
 
-CAPSULE, SPHERE, BOX, PLANE = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE),
-                               int(mujoco.mjtGeom.mjGEOM_BOX), int(mujoco.mjtGeom.mjGEOM_PLANE))
+CAPSULE, SPHERE, BOX, PLANE = (
+    int(mujoco.mjtGeom.mjGEOM_CAPSULE),
+    int(mujoco.mjtGeom.mjGEOM_SPHERE),
+    int(mujoco.mjtGeom.mjGEOM_BOX),
+    int(mujoco.mjtGeom.mjGEOM_PLANE),
+)
 SUPPORTED = {CAPSULE: "capsule", SPHERE: "sphere", BOX: "box", PLANE: "plane"}
 
 
 class SoftRenderer:
     """Renders ``num_envs`` copies of a task from its pixel camera, differentiably.
 
-    Returns float RGB in [0, 255] (float64 under ``jax.enable_x64``) (``(num_envs, height, width, 3)``): the pixel encoder takes it
+    Returns float RGB in [0, 255] (float64 under ``jax.enable_x64``) (``(num_envs, height, width, 3)``): the
+    pixel encoder takes it
     like the uint8 frames of :class:`~dva.rendering.PixelRenderer`, with gradients attached.
     ``softness`` is the silhouette width in pixels. The render is rematerialised in the backward
     pass (``jax.checkpoint``): a rollout keeps only poses per step, not per-pixel intermediates.
@@ -42,12 +46,15 @@ class SoftRenderer:
 
     differentiable = True
 
-    def __init__(self, task: Task, num_envs: int, width: int = 84, height: int | None = None,
-                 softness: float = 0.5) -> None:
+    def __init__(
+        self, task: Task, num_envs: int, width: int = 84, height: int | None = None, softness: float = 0.5
+    ) -> None:
         height = width if height is None else height
         check_image_size(width, height)
         mjm = task.mj_model
-        unsupported = sorted({SUPPORTED.get(int(t), mujoco.mjtGeom(int(t)).name) for t in mjm.geom_type} - set(SUPPORTED.values()))
+        unsupported = sorted(
+            {SUPPORTED.get(int(t), mujoco.mjtGeom(int(t)).name) for t in mjm.geom_type} - set(SUPPORTED.values())
+        )
         if unsupported:
             raise ValueError(f"SoftRenderer draws capsules, spheres, boxes and planes; {task.name} has {unsupported}")
         self.task, self.num_envs, self.width, self.height, self.softness = task, num_envs, width, height, softness
@@ -76,19 +83,22 @@ class SoftRenderer:
     def __call__(self, qpos: jax.Array) -> jax.Array:
         """Render ``qpos`` of shape ``(num_envs, nq)``: float RGB in [0, 255], differentiable."""
         if qpos.shape != (self.num_envs, self.task.mj_model.nq):
-            raise ValueError(f"qpos has shape {tuple(qpos.shape)}; this renderer needs "
-                             f"({self.num_envs}, {self.task.mj_model.nq})")
+            raise ValueError(
+                f"qpos has shape {tuple(qpos.shape)}; this renderer needs ({self.num_envs}, {self.task.mj_model.nq})"
+            )
         poses = scene_poses(self.task, qpos)
         render = jax.checkpoint(jax.vmap(self._render_one))
-        images = render(poses.cam_xpos[:, self._camera], poses.cam_xmat[:, self._camera],
-                        poses.geom_xpos, poses.geom_xmat)
+        images = render(
+            poses.cam_xpos[:, self._camera], poses.cam_xmat[:, self._camera], poses.geom_xpos, poses.geom_xmat
+        )
         return images.reshape(self.num_envs, self.height, self.width, 3) * 255.0
 
     def _render_one(self, cam_pos, cam_mat, geom_pos, geom_mat) -> jax.Array:
         rays = self._camera_rays @ cam_mat.T  # (P, 3) world directions
         centres, frames = geom_pos[self._bodies], geom_mat[self._bodies]
-        depth, coverage, normal = _hit_geoms(cam_pos, rays, centres, frames, self._types, self._sizes,
-                                             self.softness * self._pixel_angle)
+        depth, coverage, normal = _hit_geoms(
+            cam_pos, rays, centres, frames, self._types, self._sizes, self.softness * self._pixel_angle
+        )
         shade = self._shade(normal, -cam_mat[:, 2])  # (P, K, 3) light per geom
         colors = self._colors[None] * shade
         floor_depth, floor_color = self._floor(cam_pos, rays, geom_pos, cam_mat)
@@ -176,5 +186,5 @@ def _checker_colors(mjm: mujoco.MjModel) -> np.ndarray:
     texture = mjm.mat_texid[mjm.geom_matid[planes[0]]].max()
     start = mjm.tex_adr[texture]
     size = mjm.tex_height[texture] * mjm.tex_width[texture] * mjm.tex_nchannel[texture]
-    data = mjm.tex_data[start:start + size].reshape(mjm.tex_height[texture], mjm.tex_width[texture], -1)
+    data = mjm.tex_data[start : start + size].reshape(mjm.tex_height[texture], mjm.tex_width[texture], -1)
     return np.stack([data[0, 0, :3], data[0, -1, :3]]).astype(np.float32) / 255.0

@@ -81,9 +81,12 @@ class Compiled(NamedTuple):
 @functools.lru_cache(maxsize=4)
 def compiled(agent: Agent) -> Compiled:
     """``agent``'s jitted functions, traced once per agent."""
-    return Compiled(jax.jit(functools.partial(initial_state, agent)), jax.jit(agent.iteration, donate_argnums=0),
-                    jax.jit(functools.partial(evaluate_agent, agent)),
-                    jax.jit(functools.partial(evaluate_agent, agent, record=True)))
+    return Compiled(
+        jax.jit(functools.partial(initial_state, agent)),
+        jax.jit(agent.iteration, donate_argnums=0),
+        jax.jit(functools.partial(evaluate_agent, agent)),
+        jax.jit(functools.partial(evaluate_agent, agent, record=True)),
+    )
 
 
 def initial_state(agent: Agent, key: jax.Array):
@@ -118,10 +121,16 @@ def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
     """:func:`~dva.evaluation.evaluate_policy` with the agent's deterministic policy (its memory
     carried from step to step where it is a :class:`~dva.algorithms.base.RecurrentAgent`)."""
     if isinstance(agent, RecurrentAgent):
-        return evaluate_policy(agent.env, lambda observation, memory, _key: agent.act_recurrent(policy, observation, memory),
-                               key, record, agent.initial_memory(agent.env.num_envs))
-    return evaluate_policy(agent.env, lambda observation, memory, _key: (agent.act(policy, observation), memory),
-                           key, record)
+        return evaluate_policy(
+            agent.env,
+            lambda observation, memory, _key: agent.act_recurrent(policy, observation, memory),
+            key,
+            record,
+            agent.initial_memory(agent.env.num_envs),
+        )
+    return evaluate_policy(
+        agent.env, lambda observation, memory, _key: (agent.act(policy, observation), memory), key, record
+    )
 
 
 def evaluate_run(run_dir: Path, seed: int = 0) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:
@@ -131,7 +140,9 @@ def evaluate_run(run_dir: Path, seed: int = 0) -> tuple[RunSpec, np.ndarray, np.
     newest camera frame the actor saw (T, N, H, W, 3; empty for state observations).
     """
     spec, agent, state = load_run(run_dir)
-    returns, qpos, camera = jax.device_get(compiled(agent).evaluate_recorded(agent.policy(state), jax.random.PRNGKey(seed)))
+    returns, qpos, camera = jax.device_get(
+        compiled(agent).evaluate_recorded(agent.policy(state), jax.random.PRNGKey(seed))
+    )
     return spec, returns, qpos, camera
 
 
@@ -162,22 +173,35 @@ def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int):
     except Exception as error:  # orbax raises many types for damaged files
         raise ValueError(f"checkpoint {manager.directory}/{step} is corrupt or incompatible: {error}") from None
     paths_and_leaves, treedef = jax.tree_util.tree_flatten_with_path(like)
-    leaves = [saved.get(jax.tree_util.keystr(path), jnp.zeros(leaf.shape, leaf.dtype))  # zero-size leaves
-              for path, leaf in paths_and_leaves]
+    leaves = [
+        saved.get(jax.tree_util.keystr(path), jnp.zeros(leaf.shape, leaf.dtype))  # zero-size leaves
+        for path, leaf in paths_and_leaves
+    ]
     return committed(jax.tree_util.tree_unflatten(treedef, leaves))
 
 
 def csv_fields(agent: Agent) -> list[str]:
     """The columns of ``progress.csv``: the loop's, then the agent's own metrics."""
-    return ["iteration", "env_steps", "wall_time", "train_return", "eval_return", *agent.metric_names,
-            "iteration_time"]
+    return ["iteration", "env_steps", "wall_time", "train_return", "eval_return", *agent.metric_names, "iteration_time"]
 
 
-def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, iterations: int | None = None,
-          minutes: float | None = None, run_dir: Path = Path("runs/latest"), resume: bool = False,
-          eval_every: int | None = 50, eval_minutes: float | None = None, checkpoint_every: int | None = None,
-          checkpoint_minutes: float = 2.0, physics: str | None = None,
-          **config_overrides) -> Path:
+def train(
+    task: str,
+    algo: str = "dva",
+    *,
+    preset: str = "cpu",
+    seed: int = 0,
+    iterations: int | None = None,
+    minutes: float | None = None,
+    run_dir: Path = Path("runs/latest"),
+    resume: bool = False,
+    eval_every: int | None = 50,
+    eval_minutes: float | None = None,
+    checkpoint_every: int | None = None,
+    checkpoint_minutes: float = 2.0,
+    physics: str | None = None,
+    **config_overrides,
+) -> Path:
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
 
     ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
@@ -187,7 +211,8 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
     minutes more), or else the agent's ``default_iterations``. Evaluates at iteration 0, every
     ``eval_every`` iterations, after any iteration that ends ``eval_minutes`` or more after the
     last evaluation (the same resolution in wall-clock for fast and slow iterations: what a
-    time-to-threshold comparison needs) and at the end (never when both are None). Checkpoints every ``checkpoint_every`` iterations if given, else every
+    time-to-threshold comparison needs) and at the end (never when both are None). Checkpoints every
+    ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
     the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint.
     """
@@ -246,13 +271,21 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
 
     def evaluation_due(n: int) -> bool:
         return bool(eval_every and n % eval_every == 0) or bool(
-            eval_minutes and time.perf_counter() - last_eval >= 60 * eval_minutes)
+            eval_minutes and time.perf_counter() - last_eval >= 60 * eval_minutes
+        )
 
     first = int(state.iteration)
     last_train_return, last_save = float("nan"), time.perf_counter()
     if not log.rows:  # the untrained policy's return: where the curve starts (no evaluation: nan)
-        log.append({"iteration": 0, "env_steps": agent.prior_cost[1], "wall_time": offset_time, "train_return": float("nan"),
-                    "eval_return": eval_return(state) if evaluating else float("nan")})
+        log.append(
+            {
+                "iteration": 0,
+                "env_steps": agent.prior_cost[1],
+                "wall_time": offset_time,
+                "train_return": float("nan"),
+                "eval_return": eval_return(state) if evaluating else float("nan"),
+            }
+        )
     last_eval = time.perf_counter()
     bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
@@ -268,21 +301,31 @@ def train(task: str, algo: str = "dva", *, preset: str = "cpu", seed: int = 0, i
             n = int(state.iteration)
             due = evaluation_due(n)
             if not metrics["healthy"]:
-                raise TrainingDiverged(f"{agent.abort_reason(metrics)} at iteration {n}; the last good "
-                                       f"checkpoint is in {manager.directory}", n, metrics)
+                raise TrainingDiverged(
+                    f"{agent.abort_reason(metrics)} at iteration {n}; the last good "
+                    f"checkpoint is in {manager.directory}",
+                    n,
+                    metrics,
+                )
             if metrics["finished_episodes"] > 0:
                 last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
-            row = {"iteration": n, "env_steps": agent.prior_cost[1] + n * agent.env_steps_per_iteration,
-                   "wall_time": round(offset_time + clock(), 3),
-                   "train_return": last_train_return,
-                   "eval_return": eval_return(state) if due else "",
-                   **{name: float(metrics[name]) for name in agent.metric_names},
-                   "iteration_time": round(iteration_time, 4)}
+            row = {
+                "iteration": n,
+                "env_steps": agent.prior_cost[1] + n * agent.env_steps_per_iteration,
+                "wall_time": round(offset_time + clock(), 3),
+                "train_return": last_train_return,
+                "eval_return": eval_return(state) if due else "",
+                **{name: float(metrics[name]) for name in agent.metric_names},
+                "iteration_time": round(iteration_time, 4),
+            }
             log.append(row)
             if due:
                 last_eval = time.perf_counter()
-            if (n % checkpoint_every == 0 if checkpoint_every else
-                    time.perf_counter() - last_save >= 60 * checkpoint_minutes):
+            if (
+                n % checkpoint_every == 0
+                if checkpoint_every
+                else time.perf_counter() - last_save >= 60 * checkpoint_minutes
+            ):
                 save(manager, state)
                 last_save = time.perf_counter()
             bar.update(1)

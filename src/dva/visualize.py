@@ -22,7 +22,7 @@ def image_grid(images: np.ndarray, columns: int | None = None, pad: int = 2) -> 
     grid = np.full((rows * (h + pad) + pad, columns * (w + pad) + pad, c), 255, np.uint8)
     for i, image in enumerate(images):
         r, col = divmod(i, columns)
-        grid[pad + r * (h + pad): pad + r * (h + pad) + h, pad + col * (w + pad): pad + col * (w + pad) + w] = image
+        grid[pad + r * (h + pad) : pad + r * (h + pad) + h, pad + col * (w + pad) : pad + col * (w + pad) + w] = image
     return grid
 
 
@@ -53,8 +53,9 @@ def write_video(path: Path, frames: list[np.ndarray] | np.ndarray, fps: int = 30
         imageio.mimwrite(path, list(frames), fps=fps, macro_block_size=1)
 
 
-def render_trajectory(renderer: PixelRenderer, qpos_trajectory: jax.Array, columns: int | None = None,
-                      tile: bool = True) -> np.ndarray:
+def render_trajectory(
+    renderer: PixelRenderer, qpos_trajectory: jax.Array, columns: int | None = None, tile: bool = True
+) -> np.ndarray:
     """Render each step of ``qpos_trajectory`` (T, num_envs, nq): tiled into one image per step
     (T, H', W', 3), or with ``tile=False`` per env (T, num_envs, H, W, 3)."""
     render = jax.jit(renderer.__call__)
@@ -83,8 +84,15 @@ def side_by_side_video(camera: np.ndarray | None, views: np.ndarray) -> np.ndarr
     return np.stack([image_grid(step, columns=1) for step in views])
 
 
-def policy_video(path: Path, task: Task, qpos: np.ndarray, camera: np.ndarray, num_envs: int = 4,
-                 size: int = 256, action_repeat: int = 1) -> None:
+def policy_video(
+    path: Path,
+    task: Task,
+    qpos: np.ndarray,
+    camera: np.ndarray,
+    num_envs: int = 4,
+    size: int = 256,
+    action_repeat: int = 1,
+) -> None:
     """An mp4 of a recorded rollout (``qpos`` (T, N, nq), one entry per ``action_repeat`` control
     steps) of the first ``num_envs`` envs: the actor's camera frames (T, N, h, w, 3; may be
     empty) next to a ``size``² view, in real time."""

@@ -40,6 +40,8 @@ class Algorithm:
     # Before a new run: (config, task, preset, seed, run_dir, physics) → the config to run (DAgger
     # trains its teacher here when it has none).
     prepare: Callable[..., Any] = lambda config, *_: config
+    # What to try when a run diverges, in the algorithm's own flags.
+    divergence_hint: str = "lower learning rates"
 
 
 def _shac_renderer(config: SHACConfig) -> RendererKind:
@@ -49,32 +51,89 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
+SHAC_HINT = "a lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip"
 AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl", "dagger", "dreamerv3"]
 ALGORITHMS: dict[str, Algorithm] = {
-    "dva": Algorithm("D.Va: actor on pixels, gradient decoupled from the observation", SHACConfig, SHAC,
-                     lambda task, preset: shac_preset(task, preset, "pixels"),
-                     dict(observation="pixels", gradient="decoupled"), _shac_renderer),
-    "shac": Algorithm("SHAC: actor on the state, full gradient", SHACConfig, SHAC,
-                      shac_preset, dict(observation="state", gradient="full"), _shac_renderer),
-    "dpg-state": Algorithm("decoupled gradient, actor on the state (paper Fig 13)", SHACConfig, SHAC,
-                           shac_preset, dict(observation="state", gradient="decoupled"), _shac_renderer),
-    "shac-pixels": Algorithm("visual SHAC: actor on differentiably rendered pixels, full gradient",
-                             SHACConfig, SHAC, lambda task, preset: shac_preset(task, preset, "differentiable-pixels"),
-                             dict(observation="pixels", gradient="full"), _shac_renderer),
-    "drqv2": Algorithm("DrQ-v2: DDPG from pixels with random-shift augmentation", DrQV2Config, DrQV2,
-                       drqv2_preset, {}, lambda config: "warp"),
-    "curl": Algorithm("CURL: SAC from pixels with a contrastive auxiliary loss", CURLConfig, CURL,
-                      curl_preset, {}, lambda config: "warp"),
-    "dagger": Algorithm("state-to-visual DAgger: a pixel student imitates a SHAC teacher on the state",
-                        DAggerConfig, make_dagger, dagger_preset, {}, lambda config: "warp", train_teacher_if_missing),
-    "dreamerv3": Algorithm("DreamerV3: a world model from pixels (RSSM), actor and critic in imagination",
-                           DreamerV3Config, DreamerV3, dreamerv3_preset, {}, lambda config: "warp"),
+    "dva": Algorithm(
+        "D.Va: actor on pixels, gradient decoupled from the observation",
+        SHACConfig,
+        SHAC,
+        lambda task, preset: shac_preset(task, preset, "pixels"),
+        dict(observation="pixels", gradient="decoupled"),
+        _shac_renderer,
+        divergence_hint=SHAC_HINT,
+    ),
+    "shac": Algorithm(
+        "SHAC: actor on the state, full gradient",
+        SHACConfig,
+        SHAC,
+        shac_preset,
+        dict(observation="state", gradient="full"),
+        _shac_renderer,
+        divergence_hint=SHAC_HINT,
+    ),
+    "dpg-state": Algorithm(
+        "decoupled gradient, actor on the state (paper Fig 13)",
+        SHACConfig,
+        SHAC,
+        shac_preset,
+        dict(observation="state", gradient="decoupled"),
+        _shac_renderer,
+        divergence_hint=SHAC_HINT,
+    ),
+    "shac-pixels": Algorithm(
+        "visual SHAC: actor on differentiably rendered pixels, full gradient",
+        SHACConfig,
+        SHAC,
+        lambda task, preset: shac_preset(task, preset, "differentiable-pixels"),
+        dict(observation="pixels", gradient="full"),
+        _shac_renderer,
+        divergence_hint=SHAC_HINT,
+    ),
+    "drqv2": Algorithm(
+        "DrQ-v2: DDPG from pixels with random-shift augmentation",
+        DrQV2Config,
+        DrQV2,
+        drqv2_preset,
+        {},
+        lambda config: "warp",
+        divergence_hint="a lower learning rate (--drqv2.lr)",
+    ),
+    "curl": Algorithm(
+        "CURL: SAC from pixels with a contrastive auxiliary loss",
+        CURLConfig,
+        CURL,
+        curl_preset,
+        {},
+        lambda config: "warp",
+        divergence_hint="a lower learning rate (--curl.lr)",
+    ),
+    "dagger": Algorithm(
+        "state-to-visual DAgger: a pixel student imitates a SHAC teacher on the state",
+        DAggerConfig,
+        make_dagger,
+        dagger_preset,
+        {},
+        lambda config: "warp",
+        train_teacher_if_missing,
+        divergence_hint="a lower learning rate (--dagger.lr)",
+    ),
+    "dreamerv3": Algorithm(
+        "DreamerV3: a world model from pixels (RSSM), actor and critic in imagination",
+        DreamerV3Config,
+        DreamerV3,
+        dreamerv3_preset,
+        {},
+        lambda config: "warp",
+        divergence_hint="lower learning rates (--dreamerv3.model-lr, --dreamerv3.actor-lr, --dreamerv3.critic-lr)",
+    ),
 }
 assert set(get_args(AlgoName)) == set(ALGORITHMS)
 
 # run.json files written before fields were renamed still load.
 RENAMED_FIELDS: dict[type, dict[str, str]] = {
-    SHACConfig: {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm", "iterations": "lr_decay_iterations"}}
+    SHACConfig: {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm", "iterations": "lr_decay_iterations"}
+}
 
 
 def check_algo(algo: str) -> Algorithm:
@@ -96,7 +155,9 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
         if key in entry.defining:
             raise ValueError(f"{key!r} defines the algorithm {algo!r} and cannot be overridden")
         if key not in fields:
-            raise ValueError(f"unknown {algo} config field {key!r}; allowed: {', '.join(sorted(fields - set(entry.defining)))}")
+            raise ValueError(
+                f"unknown {algo} config field {key!r}; allowed: {', '.join(sorted(fields - set(entry.defining)))}"
+            )
     return entry.config_type(**{**entry.preset(task, preset), **entry.defining, **overrides})
 
 
@@ -104,8 +165,9 @@ def config_from_dict(algo: str, values: dict) -> Any:
     """A config back from ``run.json`` (lists become tuples; old field names are renamed)."""
     config_type = check_algo(algo).config_type
     renamed = RENAMED_FIELDS.get(config_type, {})
-    values = {renamed.get(key, key): tuple(value) if isinstance(value, list) else value
-              for key, value in values.items()}
+    values = {
+        renamed.get(key, key): tuple(value) if isinstance(value, list) else value for key, value in values.items()
+    }
     return config_type(**values)
 
 

@@ -11,6 +11,7 @@ from dva.envs import Observation, PixelObservations
 
 State = TypeVar("State")  # a pytree holding everything an iteration reads and writes
 
+
 class Agent(Protocol[State]):
     """An algorithm: a pure, jittable ``iteration`` over a pytree state, plus its policy.
 

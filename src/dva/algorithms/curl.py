@@ -1,5 +1,5 @@
 """CURL (Laskin et al. 2020): SAC from pixels with a contrastive auxiliary loss — one of the
-paper's model-free visual baselines (spec §3).
+paper's model-free visual baselines.
 
 Collection and replay are :class:`~dva.algorithms.off_policy.OffPolicyAgent`'s (exploration: a
 sample of the squashed-Gaussian policy); each update on a sampled batch:
@@ -38,7 +38,7 @@ from dva.replay import NStepBatch
 
 @dataclasses.dataclass(frozen=True)
 class CURLConfig(OffPolicyConfig):
-    """Hyperparameters (spec §3's CURL row)."""
+    """Hyperparameters (the paper's CURL settings)."""
 
     batch_size: int = 32
     seed_steps: int = 1000
@@ -90,8 +90,9 @@ class CURL(OffPolicyAgent):
         self.projection = Projection(config.feature_dim)
         self.target_entropy = -float(self.task.action_dim)
         self.optimizer = optax.adam(config.lr, b1=config.betas[0], b2=config.betas[1])
-        self.alpha_optimizer = optax.adam(config.temperature_lr, b1=config.temperature_betas[0],
-                                          b2=config.temperature_betas[1])
+        self.alpha_optimizer = optax.adam(
+            config.temperature_lr, b1=config.temperature_betas[0], b2=config.temperature_betas[1]
+        )
 
     def init_learner(self, key: jax.Array, pixels: jax.Array) -> CURLLearner:
         keys = jax.random.split(key, 5)
@@ -99,16 +100,24 @@ class CURL(OffPolicyAgent):
         features = self.encoder.apply(encoder, pixels)
         critic = self.critic.init(keys[1], features, jnp.zeros((len(pixels), self.task.action_dim)))
         projection = self.projection.init(keys[3], features)
-        params = {"encoder": encoder, "critic": critic, "actor": self.actor.init(keys[2], features),
-                  "projection": projection,
-                  "bilinear": jax.random.uniform(keys[4], (self.config.feature_dim,) * 2),
-                  "log_alpha": jnp.log(jnp.asarray(self.config.init_temperature))}
+        params = {
+            "encoder": encoder,
+            "critic": critic,
+            "actor": self.actor.init(keys[2], features),
+            "projection": projection,
+            "bilinear": jax.random.uniform(keys[4], (self.config.feature_dim,) * 2),
+            "log_alpha": jnp.log(jnp.asarray(self.config.init_temperature)),
+        }
         return CURLLearner(
-            params=params, target={"encoder": encoder, "projection": projection, "critic": critic},
-            opt_states={"critic": self.optimizer.init({"encoder": encoder, "critic": critic}),
-                        "actor": self.optimizer.init(params["actor"]),
-                        "contrastive": self.optimizer.init({k: params[k] for k in ("encoder", "projection", "bilinear")}),
-                        "alpha": self.alpha_optimizer.init(params["log_alpha"])})
+            params=params,
+            target={"encoder": encoder, "projection": projection, "critic": critic},
+            opt_states={
+                "critic": self.optimizer.init({"encoder": encoder, "critic": critic}),
+                "actor": self.optimizer.init(params["actor"]),
+                "contrastive": self.optimizer.init({k: params[k] for k in ("encoder", "projection", "bilinear")}),
+                "alpha": self.alpha_optimizer.init(params["log_alpha"]),
+            },
+        )
 
     def explore(self, learner: CURLLearner, pixels: jax.Array, env_steps: jax.Array, key: jax.Array):
         """A sample of the policy (reported: the temperature α)."""
@@ -132,12 +141,14 @@ class CURL(OffPolicyAgent):
 
         next_mean, next_log_std = self.actor.apply(params["actor"], self.features(params["encoder"], next_obs))
         next_action, next_log_prob = squashed_gaussian_sample(next_mean, next_log_std, keys[2])
-        target_q = jnp.minimum(*self.critic.apply(target["critic"], self.features(target["encoder"], next_obs),
-                                                  next_action))
+        target_q = jnp.minimum(
+            *self.critic.apply(target["critic"], self.features(target["encoder"], next_obs), next_action)
+        )
         soft_target = jax.lax.stop_gradient(batch.reward + batch.discount * (target_q - alpha * next_log_prob))
 
         trained, opt["critic"], c_loss, features, q1 = self.fit_critic(
-            params, opt["critic"], obs, batch.action, soft_target, weight)
+            params, opt["critic"], obs, batch.action, soft_target, weight
+        )
         params.update(trained)
 
         def actor_loss(actor):
@@ -152,8 +163,9 @@ class CURL(OffPolicyAgent):
         params["log_alpha"], opt["alpha"] = self.step(self.alpha_optimizer, grad, opt["alpha"], params["log_alpha"])
 
         anchor = random_shift(batch.obs, cfg.shift_pad, keys[4])  # a second view of each observation
-        positive = jax.lax.stop_gradient(self.projection.apply(target["projection"],
-                                                               self.features(target["encoder"], anchor)))
+        positive = jax.lax.stop_gradient(
+            self.projection.apply(target["projection"], self.features(target["encoder"], anchor))
+        )
 
         def contrastive_loss(trained):
             query = self.projection.apply(trained["projection"], self.features(trained["encoder"], obs))
@@ -165,9 +177,11 @@ class CURL(OffPolicyAgent):
         trained, opt["contrastive"] = self.step(self.optimizer, grads, opt["contrastive"], trained)
         params.update(trained)
 
-        target = {"critic": optax.incremental_update(params["critic"], target["critic"], cfg.critic_tau),
-                  "encoder": optax.incremental_update(params["encoder"], target["encoder"], cfg.encoder_tau),
-                  "projection": optax.incremental_update(params["projection"], target["projection"], cfg.encoder_tau)}
+        target = {
+            "critic": optax.incremental_update(params["critic"], target["critic"], cfg.critic_tau),
+            "encoder": optax.incremental_update(params["encoder"], target["encoder"], cfg.encoder_tau),
+            "projection": optax.incremental_update(params["projection"], target["projection"], cfg.encoder_tau),
+        }
         metrics = {"critic_loss": c_loss, "actor_loss": a_loss, "contrastive_loss": n_loss, "q_mean": jnp.mean(q1)}
         return CURLLearner(params=params, target=target, opt_states=opt), metrics
 

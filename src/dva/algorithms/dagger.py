@@ -1,4 +1,4 @@
-"""State-to-visual DAgger (Mu et al. 2025; spec §3): a pixel student with D.Va's architecture
+"""State-to-visual DAgger (Mu et al. 2025): a pixel student with D.Va's architecture
 imitates a SHAC teacher trained on the state.
 
 One :meth:`DAgger.iteration` (jit it) rolls out ``horizon`` steps over ``num_envs`` envs — each
@@ -12,7 +12,7 @@ are trained on and averaged over iterations (an EMA with ``stop_loss_decay``), i
 ``stop_bc_loss`` — on the replay's own samples the loss is near 0 after the first iteration (a few
 hundred teacher-driven frames), so it cannot be the criterion, and one iteration's fresh loss is
 too noisy: on Cart-pole it swings between 0.1 and 2 from one iteration to the next, and a single
-dip below 0.1 stopped a student at 462 whose peers went on to ≈ 1900 (``benchmarks/RESULTS.md``).
+dip below 0.1 stopped a student at 462 whose peers went on to ≈ 1900.
 
 The teacher is a finished ``dva train --algo shac`` run (``teacher``); without one, ``dva train
 --algo dagger`` trains it first (``teacher_minutes``) and the student's logged wall-clock and
@@ -36,7 +36,7 @@ from dva.tasks import EnvState
 
 @dataclasses.dataclass(frozen=True)
 class DAggerConfig:
-    """Hyperparameters (spec §3's DAgger row; the student's networks are D.Va's for the task)."""
+    """Hyperparameters (the paper's DAgger settings; the student's networks are D.Va's for the task)."""
 
     teacher: str | None = None  # run directory of a SHAC teacher on state (None: train one first)
     teacher_minutes: float = 20.0  # its training budget when none is given
@@ -84,8 +84,14 @@ class DAgger:
 
     metric_names = ("bc_loss", "fresh_bc_loss", "fresh_bc_loss_average", "teacher_fraction")
 
-    def __init__(self, env: PixelObservations, config: DAggerConfig, teacher, teacher_policy,
-                 teacher_cost: tuple[float, int] = (0.0, 0)) -> None:
+    def __init__(
+        self,
+        env: PixelObservations,
+        config: DAggerConfig,
+        teacher,
+        teacher_policy,
+        teacher_cost: tuple[float, int] = (0.0, 0),
+    ) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:
             raise ValueError(f"DAgger needs an env wrapper that renders {config.num_envs} envs")
         if teacher.task.name != env.task.name:
@@ -94,8 +100,12 @@ class DAgger:
         self.teacher, self.teacher_policy, self.prior_cost = teacher, teacher_policy, teacher_cost
         self.student = Actor(self.task.action_dim, config.actor_hidden, pixels=True, trunk=config.trunk)
         self.optimizer = optax.adam(config.lr, b1=config.betas[0], b2=config.betas[1])
-        self.replay = flashbax.make_item_buffer(max_length=config.replay_size, min_length=config.batch_size,
-                                                sample_batch_size=config.batch_size, add_batches=True)
+        self.replay = flashbax.make_item_buffer(
+            max_length=config.replay_size,
+            min_length=config.batch_size,
+            sample_batch_size=config.batch_size,
+            add_batches=True,
+        )
 
     @property
     def env_steps_per_iteration(self) -> int:
@@ -110,9 +120,16 @@ class DAgger:
         env = self.env.reset(env_key)
         student = self.student.init(student_key, env.pixels[:1])
         example = {"pixels": env.pixels[0], "action": jnp.zeros(self.task.action_dim)}
-        return DAggerState(student=student, opt_state=self.optimizer.init(student), env=env,
-                           replay=self.replay.init(example), episode_return=jnp.zeros(self.config.num_envs),
-                           fresh_loss_average=jnp.zeros(()), key=key, iteration=jnp.zeros((), jnp.int32))
+        return DAggerState(
+            student=student,
+            opt_state=self.optimizer.init(student),
+            env=env,
+            replay=self.replay.init(example),
+            episode_return=jnp.zeros(self.config.num_envs),
+            fresh_loss_average=jnp.zeros(()),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+        )
 
     def teacher_action(self, observation: Observation) -> jax.Array:
         return jax.lax.stop_gradient(self.teacher.act(self.teacher_policy, observation))
@@ -140,12 +157,16 @@ class DAgger:
             return (env, jnp.where(env.done, 0.0, episode_return)), (observation["pixels"], label, finished, env.done)
 
         (env, episode_return), (pixels, labels, finished, done) = jax.lax.scan(
-            step, (state.env, state.episode_return), jax.random.split(mix_key, cfg.horizon))
+            step, (state.env, state.episode_return), jax.random.split(mix_key, cfg.horizon)
+        )
         flat = lambda x: x.reshape((-1,) + x.shape[2:])
         replay = self.replay.add(state.replay, {"pixels": flat(pixels), "action": flat(labels)})
         fresh_bc_loss = self.bc_loss(state.student, flat(pixels), flat(labels))  # held out: not yet trained on
-        average = jnp.where(state.iteration == 0, fresh_bc_loss,  # the EMA starts at the first value
-                            cfg.stop_loss_decay * state.fresh_loss_average + (1.0 - cfg.stop_loss_decay) * fresh_bc_loss)
+        average = jnp.where(
+            state.iteration == 0,
+            fresh_bc_loss,  # the EMA starts at the first value
+            cfg.stop_loss_decay * state.fresh_loss_average + (1.0 - cfg.stop_loss_decay) * fresh_bc_loss,
+        )
 
         def update(carry, key):
             student, opt_state = carry
@@ -154,15 +175,30 @@ class DAgger:
             updates, opt_state = self.optimizer.update(grads, opt_state, student)
             return (optax.apply_updates(student, updates), opt_state), loss
 
-        (student, opt_state), losses = jax.lax.scan(update, (state.student, state.opt_state),
-                                                    jax.random.split(update_key, cfg.updates_per_iteration))
+        (student, opt_state), losses = jax.lax.scan(
+            update, (state.student, state.opt_state), jax.random.split(update_key, cfg.updates_per_iteration)
+        )
         bc_loss = losses[-1]
-        metrics = {"bc_loss": bc_loss, "fresh_bc_loss": fresh_bc_loss, "fresh_bc_loss_average": average,
-                   "teacher_fraction": fraction, "healthy": jnp.isfinite(bc_loss),
-                   "stop": (average < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction),
-                   "finished_return_sum": finished.sum(), "finished_episodes": done.sum()}
-        return state.replace(student=student, opt_state=opt_state, env=env, replay=replay, episode_return=episode_return,
-                             fresh_loss_average=average, key=key, iteration=state.iteration + 1), metrics
+        metrics = {
+            "bc_loss": bc_loss,
+            "fresh_bc_loss": fresh_bc_loss,
+            "fresh_bc_loss_average": average,
+            "teacher_fraction": fraction,
+            "healthy": jnp.isfinite(bc_loss),
+            "stop": (average < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction),
+            "finished_return_sum": finished.sum(),
+            "finished_episodes": done.sum(),
+        }
+        return state.replace(
+            student=student,
+            opt_state=opt_state,
+            env=env,
+            replay=replay,
+            episode_return=episode_return,
+            fresh_loss_average=average,
+            key=key,
+            iteration=state.iteration + 1,
+        ), metrics
 
     # ---- the agent's policy ------------------------------------------------------------------
     def policy(self, state: DAggerState) -> dict:
@@ -185,11 +221,13 @@ def make_dagger(env: PixelObservations, config: DAggerConfig) -> DAgger:
         raise ValueError("DAgger needs a teacher run directory (config.teacher)")
     spec, teacher, teacher_state = load_run(config.teacher)
     if getattr(teacher.config, "observation", None) != "state":  # SHAC or DPG on the state
-        raise ValueError(f"the teacher {config.teacher} is a {spec.algo!r} run; DAgger needs a teacher on the state "
-                         "(--algo shac)")
+        raise ValueError(
+            f"the teacher {config.teacher} is a {spec.algo!r} run; DAgger needs a teacher on the state (--algo shac)"
+        )
     last = read_progress(config.teacher)[-1]
-    return DAgger(env, config, teacher, teacher.policy(teacher_state),
-                  (float(last["wall_time"]), int(last["env_steps"])))
+    return DAgger(
+        env, config, teacher, teacher.policy(teacher_state), (float(last["wall_time"]), int(last["env_steps"]))
+    )
 
 
 def train_teacher_if_missing(config: DAggerConfig, task: str, preset: str, seed: int, run_dir, physics) -> DAggerConfig:
@@ -198,6 +236,13 @@ def train_teacher_if_missing(config: DAggerConfig, task: str, preset: str, seed:
 
     if config.teacher is not None:
         return config
-    teacher_dir = train(task, "shac", preset=preset, seed=seed, minutes=config.teacher_minutes,
-                        run_dir=run_dir / "teacher", physics=physics)
+    teacher_dir = train(
+        task,
+        "shac",
+        preset=preset,
+        seed=seed,
+        minutes=config.teacher_minutes,
+        run_dir=run_dir / "teacher",
+        physics=physics,
+    )
     return dataclasses.replace(config, teacher=str(teacher_dir))

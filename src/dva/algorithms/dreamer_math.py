@@ -33,8 +33,10 @@ def twohot(x: jax.Array, bins: jax.Array) -> jax.Array:
     upper = jnp.clip(jnp.searchsorted(bins, y, side="right"), 1, len(bins) - 1)
     lower = upper - 1
     weight_upper = (y - bins[lower]) / (bins[upper] - bins[lower])
-    return (jax.nn.one_hot(lower, len(bins)) * (1.0 - weight_upper)[..., None]
-            + jax.nn.one_hot(upper, len(bins)) * weight_upper[..., None])
+    return (
+        jax.nn.one_hot(lower, len(bins)) * (1.0 - weight_upper)[..., None]
+        + jax.nn.one_hot(upper, len(bins)) * weight_upper[..., None]
+    )
 
 
 def twohot_decode(logits: jax.Array, bins: jax.Array) -> jax.Array:
@@ -42,8 +44,7 @@ def twohot_decode(logits: jax.Array, bins: jax.Array) -> jax.Array:
     return symexp(jnp.sum(jax.nn.softmax(logits, axis=-1) * bins, axis=-1))
 
 
-def lambda_returns(reward: jax.Array, value: jax.Array, continuation: jax.Array, gamma: float,
-                   lam: float) -> jax.Array:
+def lambda_returns(reward: jax.Array, value: jax.Array, continuation: jax.Array, gamma: float, lam: float) -> jax.Array:
     """λ-returns of an imagined trajectory (time-major).
 
     ``reward``, ``continuation`` (the probability the episode goes on after the step, 0 at a
@@ -77,11 +78,12 @@ def categorical_kl(p_logits: jax.Array, q_logits: jax.Array) -> jax.Array:
     return jnp.sum(jnp.exp(p_log) * (p_log - q_log), axis=(-2, -1))
 
 
-def kl_balance_losses(posterior_logits: jax.Array, prior_logits: jax.Array,
-                      free_nats: float = 1.0) -> tuple[jax.Array, jax.Array]:
+def kl_balance_losses(
+    posterior_logits: jax.Array, prior_logits: jax.Array, free_nats: float = 1.0
+) -> tuple[jax.Array, jax.Array]:
     """DreamerV3's dynamics and representation losses with free bits:
     ``max(free, KL(sg(post) ‖ prior))`` trains the prior, ``max(free, KL(post ‖ sg(prior)))`` the
-    encoder; below ``free_nats`` neither has a gradient. Scale them by 0.5 and 0.1 (spec §3)."""
+    encoder; below ``free_nats`` neither has a gradient. Scale them by 0.5 and 0.1 (DreamerV3's KL balance)."""
     stop = jax.lax.stop_gradient
     dynamics = jnp.maximum(free_nats, categorical_kl(stop(posterior_logits), prior_logits))
     representation = jnp.maximum(free_nats, categorical_kl(posterior_logits, stop(prior_logits)))

@@ -1,4 +1,4 @@
-"""DreamerV3 (Hafner et al. 2023) from pixels — the paper's model-based visual baseline (spec §3).
+"""DreamerV3 (Hafner et al. 2023) from pixels — the paper's model-based visual baseline.
 
 One iteration collects ``collect_steps`` steps of every env with the actor acting on the RSSM's
 posterior state (stored as single frames in a sequence replay), then makes ``updates`` updates,
@@ -36,8 +36,16 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.dreamer_math import (kl_balance_losses, lambda_returns, normalized_advantage, symlog_bins,
-                                         twohot, twohot_decode, unimix_logits, update_return_scale)
+from dva.algorithms.dreamer_math import (
+    kl_balance_losses,
+    lambda_returns,
+    normalized_advantage,
+    symlog_bins,
+    twohot,
+    twohot_decode,
+    unimix_logits,
+    update_return_scale,
+)
 from dva.algorithms.off_policy import collect_into_replay
 from dva.envs import Observation, PixelObservations
 from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, scale_pixels
@@ -47,7 +55,7 @@ from dva.tasks import EnvState
 
 @dataclasses.dataclass(frozen=True)
 class DreamerV3Config:
-    """Hyperparameters (spec §3's DreamerV3 row; the network sizes of the reference's "S" model)."""
+    """Hyperparameters (the paper's DreamerV3 settings; the network sizes of the reference's "S" model)."""
 
     num_envs: int = 4
     image_size: int = 64
@@ -94,10 +102,14 @@ class DreamerV3Config:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
         if self.frame_stack != 1:
-            raise ValueError(f"frame_stack = {self.frame_stack} is not allowed for DreamerV3; use 1 (the RSSM remembers)")
+            raise ValueError(
+                f"frame_stack = {self.frame_stack} is not allowed for DreamerV3; use 1 (the RSSM remembers)"
+            )
         if self.image_size % 16:
-            raise ValueError(f"image_size = {self.image_size} is not allowed for DreamerV3's 4 stride-2 "
-                             "convolutions; use a multiple of 16 (e.g. 48, 64)")
+            raise ValueError(
+                f"image_size = {self.image_size} is not allowed for DreamerV3's 4 stride-2 "
+                "convolutions; use a multiple of 16 (e.g. 48, 64)"
+            )
         if self.actor_gradient not in ("backprop", "reinforce"):
             raise ValueError(f"actor_gradient = {self.actor_gradient!r} is not allowed; use 'backprop' or 'reinforce'")
         if self.train_ratio <= 0:
@@ -163,8 +175,16 @@ class DreamerV3:
     """The DreamerV3 agent (an :class:`~dva.algorithms.base.Agent` and
     :class:`~dva.algorithms.base.RecurrentAgent`); see the module docstring."""
 
-    metric_names = ("model_loss", "image_loss", "reward_loss", "kl", "actor_loss", "critic_loss",
-                    "return_scale", "exploration")
+    metric_names = (
+        "model_loss",
+        "image_loss",
+        "reward_loss",
+        "kl",
+        "actor_loss",
+        "critic_loss",
+        "return_scale",
+        "exploration",
+    )
 
     def __init__(self, env: PixelObservations, config: DreamerV3Config) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs or env.frame_stack != 1:
@@ -183,11 +203,16 @@ class DreamerV3:
         self.critic = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
         self.bins = symlog_bins(cfg.num_bins)
         self.optimizers = {
-            "model": optax.chain(optax.clip_by_global_norm(cfg.model_clip), optax.adam(cfg.model_lr, eps=cfg.model_eps)),
-            "actor": optax.chain(optax.clip_by_global_norm(cfg.actor_critic_clip),
-                                 optax.adam(cfg.actor_lr, eps=cfg.actor_critic_eps)),
-            "critic": optax.chain(optax.clip_by_global_norm(cfg.actor_critic_clip),
-                                  optax.adam(cfg.critic_lr, eps=cfg.actor_critic_eps))}
+            "model": optax.chain(
+                optax.clip_by_global_norm(cfg.model_clip), optax.adam(cfg.model_lr, eps=cfg.model_eps)
+            ),
+            "actor": optax.chain(
+                optax.clip_by_global_norm(cfg.actor_critic_clip), optax.adam(cfg.actor_lr, eps=cfg.actor_critic_eps)
+            ),
+            "critic": optax.chain(
+                optax.clip_by_global_norm(cfg.actor_critic_clip), optax.adam(cfg.critic_lr, eps=cfg.actor_critic_eps)
+            ),
+        }
         self.replay = SequenceReplay(cfg.num_envs, cfg.replay_size, cfg.batch_size, cfg.batch_length)
 
     @property
@@ -215,8 +240,9 @@ class DreamerV3:
         return unimix_logits(self.rssm.apply(model["rssm"], deter, method=RSSM.prior), self.config.unimix)
 
     def posterior(self, model: dict, deter: jax.Array, embedding: jax.Array) -> jax.Array:
-        return unimix_logits(self.rssm.apply(model["rssm"], deter, embedding, method=RSSM.posterior),
-                             self.config.unimix)
+        return unimix_logits(
+            self.rssm.apply(model["rssm"], deter, embedding, method=RSSM.posterior), self.config.unimix
+        )
 
     def transition(self, model: dict, deter: jax.Array, stoch: jax.Array, action: jax.Array) -> jax.Array:
         return self.rssm.apply(model["rssm"], deter, stoch, action, method=RSSM.transition)
@@ -246,15 +272,15 @@ class DreamerV3:
             stoch = sample_onehot(posterior, posterior_key)
             # the state the previous action led to: this one within an episode, the prior's guess
             # where the auto-reset replaced that step's frame by the next episode's first
-            arrived_stoch = jnp.where(restart_t[:, None, None],
-                                      sample_onehot(self.prior(model, arrived), prior_key), stoch)
+            arrived_stoch = jnp.where(
+                restart_t[:, None, None], sample_onehot(self.prior(model, arrived), prior_key), stoch
+            )
             outputs = (deter, stoch, self.prior(model, deter), posterior, features(arrived, arrived_stoch))
             return (deter, stoch), outputs
 
         time_major = lambda x: jnp.swapaxes(x, 0, 1)
         initial = (jnp.zeros((batch, cfg.deter)), jnp.zeros((batch, cfg.stoch, cfg.classes)))
-        inputs = (time_major(embedding), time_major(restart), time_major(prev_action),
-                  jax.random.split(key, length))
+        inputs = (time_major(embedding), time_major(restart), time_major(prev_action), jax.random.split(key, length))
         _, (deter, stoch, prior, posterior, arrived) = jax.lax.scan(step, initial, inputs)
         deter, stoch, prior, posterior, arrived = map(time_major, (deter, stoch, prior, posterior, arrived))
 
@@ -266,8 +292,9 @@ class DreamerV3:
         reward_loss = categorical_cross_entropy(reward_logits, twohot(steps.reward[:, :-1], self.bins))
         cont_logit = self.cont_head.apply(model["cont"], arrived[:, 1:])[..., 0]
         cont_loss = optax.sigmoid_binary_cross_entropy(cont_logit, 1.0 - steps.terminated[:, :-1])
-        loss = (jnp.mean(image_loss + cfg.dynamics_scale * dynamics + cfg.representation_scale * representation)
-                + jnp.mean(reward_loss + cont_loss))
+        loss = jnp.mean(
+            image_loss + cfg.dynamics_scale * dynamics + cfg.representation_scale * representation
+        ) + jnp.mean(reward_loss + cont_loss)
         terms = {"image_loss": jnp.mean(image_loss), "reward_loss": jnp.mean(reward_loss), "kl": jnp.mean(dynamics)}
         return loss, ((deter, stoch), terms)
 
@@ -280,8 +307,12 @@ class DreamerV3:
 
     def initial_memory(self, num_envs: int) -> Latent:
         cfg = self.config
-        return Latent(deter=jnp.zeros((num_envs, cfg.deter)), stoch=jnp.zeros((num_envs, cfg.stoch, cfg.classes)),
-                      action=jnp.zeros((num_envs, self.task.action_dim)), restart=jnp.ones(num_envs, bool))
+        return Latent(
+            deter=jnp.zeros((num_envs, cfg.deter)),
+            stoch=jnp.zeros((num_envs, cfg.stoch, cfg.classes)),
+            action=jnp.zeros((num_envs, self.task.action_dim)),
+            restart=jnp.ones(num_envs, bool),
+        )
 
     def step_latent(self, model: dict, latent: Latent, pixels: jax.Array, key: jax.Array | None) -> Latent:
         """The state after seeing ``pixels`` (one frame per env): a posterior sample, or its mode
@@ -326,11 +357,21 @@ class DreamerV3:
             stoch = sample_onehot(self.prior(model, deter), stoch_key)
             return (deter, stoch), (feature, action)
 
-        (deter, stoch), (feats, actions) = jax.lax.scan(step, (deter, stoch), jax.random.split(key, self.config.horizon))
+        (deter, stoch), (feats, actions) = jax.lax.scan(
+            step, (deter, stoch), jax.random.split(key, self.config.horizon)
+        )
         return jnp.concatenate([feats, features(deter, stoch)[None]]), actions
 
-    def actor_loss(self, actor: dict, model: dict, critic: dict, return_scale: jax.Array, deter: jax.Array,
-                   stoch: jax.Array, key: jax.Array):
+    def actor_loss(
+        self,
+        actor: dict,
+        model: dict,
+        critic: dict,
+        return_scale: jax.Array,
+        deter: jax.Array,
+        stoch: jax.Array,
+        key: jax.Array,
+    ):
         """The actor's loss on ``horizon`` steps imagined from ``(deter, stoch)`` with the model and
         critic frozen. Also returns what the critic learns from — the features, λ-returns and
         weights, without gradient — the updated return scale and the actor's mean std."""
@@ -355,19 +396,32 @@ class DreamerV3:
         loss = -jnp.mean(weight * (objective + cfg.entropy * entropy))
         return loss, (feats, jax.lax.stop_gradient(returns), weight, scale, jnp.mean(std))
 
-    def behaviour_update(self, params: dict, slow_critic: dict, opt_states: dict, return_scale: jax.Array,
-                         starts: tuple[jax.Array, jax.Array], key: jax.Array):
+    def behaviour_update(
+        self,
+        params: dict,
+        slow_critic: dict,
+        opt_states: dict,
+        return_scale: jax.Array,
+        starts: tuple[jax.Array, jax.Array],
+        key: jax.Array,
+    ):
         """Actor and critic updates on trajectories imagined from ``starts`` (posterior states)."""
         deter, stoch = (jax.lax.stop_gradient(x.reshape((-1,) + x.shape[2:])) for x in starts)
         model = jax.lax.stop_gradient(params["model"])
         (a_loss, (feats, returns, weight, return_scale, mean_std)), actor_grads = jax.value_and_grad(
-            self.actor_loss, has_aux=True)(params["actor"], model, params["critic"], return_scale, deter, stoch, key)
+            self.actor_loss, has_aux=True
+        )(params["actor"], model, params["critic"], return_scale, deter, stoch, key)
         slow_value = twohot_decode(self.critic.apply(slow_critic, feats[:-1]), self.bins)
 
         def critic_loss(critic):
             logits = self.critic.apply(critic, feats[:-1])
-            return jnp.mean(weight * (categorical_cross_entropy(logits, twohot(returns, self.bins))
-                                      + categorical_cross_entropy(logits, twohot(slow_value, self.bins))))
+            return jnp.mean(
+                weight
+                * (
+                    categorical_cross_entropy(logits, twohot(returns, self.bins))
+                    + categorical_cross_entropy(logits, twohot(slow_value, self.bins))
+                )
+            )
 
         c_loss, critic_grads = jax.value_and_grad(critic_loss)(params["critic"])
         new = {}
@@ -384,11 +438,13 @@ class DreamerV3:
         steps = self.replay.sample_sequences(state.replay, sample_key)
         params, opt_states = state.params, dict(state.opt_states)
         (model_loss, (starts, terms)), grads = jax.value_and_grad(self.world_model_loss, has_aux=True)(
-            params["model"], steps, model_key)
+            params["model"], steps, model_key
+        )
         updates, opt_states["model"] = self.optimizers["model"].update(grads, opt_states["model"], params["model"])
         params = {**params, "model": optax.apply_updates(params["model"], updates)}
         params, slow_critic, opt_states, return_scale, metrics = self.behaviour_update(
-            params, state.slow_critic, opt_states, state.return_scale, starts, imagine_key)
+            params, state.slow_critic, opt_states, state.return_scale, starts, imagine_key
+        )
         state = state.replace(params=params, slow_critic=slow_critic, opt_states=opt_states, return_scale=return_scale)
         return state, {"model_loss": model_loss, **terms, **metrics}
 
@@ -401,21 +457,45 @@ class DreamerV3:
         latent = self.initial_memory(cfg.num_envs)
         embedding = self.encoder.init(net_keys[0], env.pixels[:1])
         feature = features(latent.deter[:1], latent.stoch[:1])
-        model = {"encoder": embedding,
-                 "decoder": self.decoder.init(net_keys[1], feature),
-                 "rssm": self.rssm.init(net_keys[2], latent.deter[:1], latent.stoch[:1], latent.action[:1],
-                                        self.encoder.apply(embedding, env.pixels[:1])),
-                 "reward": self.reward_head.init(net_keys[3], feature),
-                 "cont": self.cont_head.init(net_keys[4], feature)}
-        params = {"model": model, "actor": self.actor.init(net_keys[5], feature),
-                  "critic": self.critic.init(net_keys[6], feature)}
-        example = Step(frame=env.pixels[0], first=jnp.ones((), bool), action=jnp.zeros(action_dim),
-                       reward=jnp.zeros(()), terminated=jnp.zeros((), bool), truncated=jnp.zeros((), bool))
-        state = DreamerState(params=params, slow_critic=params["critic"],
-                             opt_states={name: self.optimizers[name].init(params[name]) for name in self.optimizers},
-                             return_scale=jnp.zeros(()), env=env, first=jnp.ones(cfg.num_envs, bool), latent=latent,
-                             replay=self.replay.init(example), episode_return=jnp.zeros(cfg.num_envs), key=key,
-                             iteration=jnp.zeros((), jnp.int32))
+        model = {
+            "encoder": embedding,
+            "decoder": self.decoder.init(net_keys[1], feature),
+            "rssm": self.rssm.init(
+                net_keys[2],
+                latent.deter[:1],
+                latent.stoch[:1],
+                latent.action[:1],
+                self.encoder.apply(embedding, env.pixels[:1]),
+            ),
+            "reward": self.reward_head.init(net_keys[3], feature),
+            "cont": self.cont_head.init(net_keys[4], feature),
+        }
+        params = {
+            "model": model,
+            "actor": self.actor.init(net_keys[5], feature),
+            "critic": self.critic.init(net_keys[6], feature),
+        }
+        example = Step(
+            frame=env.pixels[0],
+            first=jnp.ones((), bool),
+            action=jnp.zeros(action_dim),
+            reward=jnp.zeros(()),
+            terminated=jnp.zeros((), bool),
+            truncated=jnp.zeros((), bool),
+        )
+        state = DreamerState(
+            params=params,
+            slow_critic=params["critic"],
+            opt_states={name: self.optimizers[name].init(params[name]) for name in self.optimizers},
+            return_scale=jnp.zeros(()),
+            env=env,
+            first=jnp.ones(cfg.num_envs, bool),
+            latent=latent,
+            replay=self.replay.init(example),
+            episode_return=jnp.zeros(cfg.num_envs),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+        )
 
         def seed_round(state, round_key):
             uniform = jax.random.uniform(round_key, (cfg.num_envs, action_dim), minval=-1.0, maxval=1.0)
@@ -437,12 +517,16 @@ class DreamerV3:
             state = state.replace(latent=latent.replace(action=action, restart=state.first))
             return state, (finished, state.first)
 
-        state, (finished, done) = jax.lax.scan(collect_step, state,
-                                               jax.random.split(collect_key, self.config.collect_steps))
+        state, (finished, done) = jax.lax.scan(
+            collect_step, state, jax.random.split(collect_key, self.config.collect_steps)
+        )
         state, metrics = jax.lax.scan(self.update, state, jax.random.split(update_key, self.config.updates))
         metrics = {name: jnp.mean(value) for name, value in metrics.items()}
-        metrics.update(healthy=jnp.all(jnp.array([jnp.isfinite(value) for value in metrics.values()])),
-                       finished_return_sum=finished.sum(), finished_episodes=done.sum())
+        metrics.update(
+            healthy=jnp.all(jnp.array([jnp.isfinite(value) for value in metrics.values()])),
+            finished_return_sum=finished.sum(),
+            finished_episodes=done.sum(),
+        )
         return state.replace(key=key, iteration=state.iteration + 1), metrics
 
     def abort_reason(self, metrics: dict) -> str:

@@ -1,5 +1,5 @@
 """DrQ-v2 (Yarats et al. 2021): DDPG from pixels with random-shift augmentation — the paper's
-model-free visual baseline (spec §3).
+model-free visual baseline.
 
 Collection and replay are :class:`~dva.algorithms.off_policy.OffPolicyAgent`'s (exploration: the
 actor's action plus Gaussian noise whose std decays linearly); each update on a sampled batch:
@@ -30,7 +30,7 @@ from dva.replay import NStepBatch
 
 @dataclasses.dataclass(frozen=True)
 class DrQV2Config(OffPolicyConfig):
-    """Hyperparameters (spec §3's DrQ-v2 row; Cart-pole's envs and updates)."""
+    """Hyperparameters (the paper's DrQ-v2 settings; Cart-pole's envs and updates)."""
 
     batch_size: int = 256
     n_step: int = 3
@@ -76,9 +76,12 @@ class DrQV2(OffPolicyAgent):
         features = self.encoder.apply(encoder, pixels)
         actor = self.actor.init(actor_key, features)
         critic = self.critic.init(critic_key, features, jnp.zeros((len(pixels), self.task.action_dim)))
-        return DrQV2Learner(params={"encoder": encoder, "actor": actor, "critic": critic}, target_critic=critic,
-                            critic_opt_state=self.optimizer.init({"encoder": encoder, "critic": critic}),
-                            actor_opt_state=self.optimizer.init(actor))
+        return DrQV2Learner(
+            params={"encoder": encoder, "actor": actor, "critic": critic},
+            target_critic=critic,
+            critic_opt_state=self.optimizer.init({"encoder": encoder, "critic": critic}),
+            actor_opt_state=self.optimizer.init(actor),
+        )
 
     def exploration_std(self, env_steps: jax.Array) -> jax.Array:
         """The linear schedule from ``std_start`` to ``std_end`` over ``std_decay_steps`` env steps."""
@@ -103,13 +106,15 @@ class DrQV2(OffPolicyAgent):
         weight = batch.valid / jnp.maximum(batch.valid.sum(), 1)
 
         next_features = self.features(params["encoder"], next_obs)
-        next_action = clipped_noise_action(self.actor.apply(params["actor"], next_features), std, cfg.std_clip,
-                                           target_key)
+        next_action = clipped_noise_action(
+            self.actor.apply(params["actor"], next_features), std, cfg.std_clip, target_key
+        )
         target_q = jnp.minimum(*self.critic.apply(learner.target_critic, next_features, next_action))
         target = jax.lax.stop_gradient(batch.reward + batch.discount * target_q)
 
         trained, critic_opt_state, c_loss, features, q1 = self.fit_critic(
-            params, learner.critic_opt_state, obs, batch.action, target, weight)
+            params, learner.critic_opt_state, obs, batch.action, target, weight
+        )
 
         def actor_loss(actor):
             action = clipped_noise_action(self.actor.apply(actor, features), std, cfg.std_clip, actor_key)
@@ -118,10 +123,12 @@ class DrQV2(OffPolicyAgent):
         a_loss, grads = jax.value_and_grad(actor_loss)(params["actor"])
         updates, actor_opt_state = self.optimizer.update(grads, learner.actor_opt_state, params["actor"])
         actor = optax.apply_updates(params["actor"], updates)
-        learner = DrQV2Learner(params={**trained, "actor": actor},
-                               target_critic=optax.incremental_update(trained["critic"], learner.target_critic,
-                                                                      cfg.target_tau),
-                               critic_opt_state=critic_opt_state, actor_opt_state=actor_opt_state)
+        learner = DrQV2Learner(
+            params={**trained, "actor": actor},
+            target_critic=optax.incremental_update(trained["critic"], learner.target_critic, cfg.target_tau),
+            critic_opt_state=critic_opt_state,
+            actor_opt_state=actor_opt_state,
+        )
         return learner, {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q1)}
 
     # ---- the agent's policy ------------------------------------------------------------------

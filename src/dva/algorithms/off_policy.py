@@ -3,7 +3,8 @@ replay and the update loop, behind the :class:`~dva.algorithms.base.Agent` proto
 
 :meth:`OffPolicyAgent.init` fills the replay with ``seed_steps`` env steps of uniform random
 actions; one :meth:`OffPolicyAgent.iteration` (jit it) then takes one exploring step in every env,
-stores it in the replay, and makes ``updates_per_iteration`` updates on sampled n-step batches. A subclass supplies its networks (:meth:`init_learner`), its exploring
+stores it in the replay, and makes ``updates_per_iteration`` updates on sampled n-step batches. A subclass
+supplies its networks (:meth:`init_learner`), its exploring
 action (:meth:`explore`), one update (:meth:`update`) and its evaluation policy.
 """
 
@@ -61,19 +62,32 @@ class OffPolicyState(struct.PyTreeNode):
     iteration: jax.Array
 
 
-def collect_into_replay(env: PixelObservations, replay: SequenceReplay, state, action: jax.Array,
-                        reward_scale: float = 1.0):
+def collect_into_replay(
+    env: PixelObservations, replay: SequenceReplay, state, action: jax.Array, reward_scale: float = 1.0
+):
     """One step of every env with ``action``, stored in ``replay`` (the newest frame of the
     observation the action was taken in, the reward × ``reward_scale``). ``state`` is any agent
     state with ``env``, ``first``, ``replay`` and ``episode_return`` fields; returns it updated and
     the returns of the episodes that just ended (0 elsewhere; unscaled)."""
     next_env = env.step(state.env, action)
-    replay_state = replay.add(state.replay, Step(frame=state.env.pixels[..., -3:], first=state.first, action=action,
-                                                 reward=reward_scale * next_env.reward,
-                                                 terminated=next_env.terminated, truncated=next_env.truncated))
+    replay_state = replay.add(
+        state.replay,
+        Step(
+            frame=state.env.pixels[..., -3:],
+            first=state.first,
+            action=action,
+            reward=reward_scale * next_env.reward,
+            terminated=next_env.terminated,
+            truncated=next_env.truncated,
+        ),
+    )
     episode_return = state.episode_return + next_env.reward
-    state = state.replace(env=next_env, first=next_env.done, replay=replay_state,
-                          episode_return=jnp.where(next_env.done, 0.0, episode_return))
+    state = state.replace(
+        env=next_env,
+        first=next_env.done,
+        replay=replay_state,
+        episode_return=jnp.where(next_env.done, 0.0, episode_return),
+    )
     return state, jnp.where(next_env.done, episode_return, 0.0)
 
 
@@ -87,8 +101,9 @@ class OffPolicyAgent(abc.ABC):
             raise ValueError(f"{type(self).__name__} needs an env wrapper that renders {config.num_envs} envs")
         self.env, self.task, self.config = env, env.task, config
         self.encoder = PixelEncoder()  # every algorithm's params hold its weights under "encoder"
-        self.replay = FrameReplay(config.num_envs, config.replay_size, config.batch_size, config.frame_stack,
-                                  config.n_step, config.gamma)
+        self.replay = FrameReplay(
+            config.num_envs, config.replay_size, config.batch_size, config.frame_stack, config.n_step, config.gamma
+        )
 
     @property
     def metric_names(self) -> tuple[str, ...]:
@@ -123,8 +138,9 @@ class OffPolicyAgent(abc.ABC):
         """The encoder and actor (what ``act`` needs)."""
         return {"encoder": state.learner.params["encoder"], "actor": state.learner.params["actor"]}
 
-    def fit_critic(self, params: dict, opt_state, obs: jax.Array, action: jax.Array, target: jax.Array,
-                   weight: jax.Array):
+    def fit_critic(
+        self, params: dict, opt_state, obs: jax.Array, action: jax.Array, target: jax.Array, weight: jax.Array
+    ):
         """One clipped double-Q regression step of the encoder and critic towards ``target``
         (both heads, per-sample ``weight``), with the subclass's ``features``, ``critic`` and
         ``optimizer``. Returns the new ``{"encoder", "critic"}``, the optimiser state, the loss,
@@ -159,15 +175,28 @@ class OffPolicyAgent(abc.ABC):
         stays free of a ``lax.cond`` around its updates."""
         env_key, learner_key, seed_key, key = jax.random.split(key, 4)
         env = self.env.reset(env_key)
-        example = Step(frame=env.pixels[0, ..., -3:], first=jnp.ones((), bool), action=jnp.zeros(self.task.action_dim),
-                       reward=jnp.zeros(()), terminated=jnp.zeros((), bool), truncated=jnp.zeros((), bool))
-        state = OffPolicyState(learner=self.init_learner(learner_key, env.pixels[:1]), env=env,
-                               first=jnp.ones(self.config.num_envs, bool), replay=self.replay.init(example),
-                               episode_return=jnp.zeros(self.config.num_envs), key=key,
-                               iteration=jnp.zeros((), jnp.int32))
+        example = Step(
+            frame=env.pixels[0, ..., -3:],
+            first=jnp.ones((), bool),
+            action=jnp.zeros(self.task.action_dim),
+            reward=jnp.zeros(()),
+            terminated=jnp.zeros((), bool),
+            truncated=jnp.zeros((), bool),
+        )
+        state = OffPolicyState(
+            learner=self.init_learner(learner_key, env.pixels[:1]),
+            env=env,
+            first=jnp.ones(self.config.num_envs, bool),
+            replay=self.replay.init(example),
+            episode_return=jnp.zeros(self.config.num_envs),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+        )
 
         def seed_round(state, round_key):
-            uniform = jax.random.uniform(round_key, (self.config.num_envs, self.task.action_dim), minval=-1.0, maxval=1.0)
+            uniform = jax.random.uniform(
+                round_key, (self.config.num_envs, self.task.action_dim), minval=-1.0, maxval=1.0
+            )
             return self.collect(state, uniform)[0], None
 
         return jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
@@ -188,11 +217,17 @@ class OffPolicyAgent(abc.ABC):
             sample_key, step_key = jax.random.split(key)
             return self.update(learner, self.replay.sample(state.replay, sample_key), env_steps, step_key)
 
-        learner, losses = jax.lax.scan(one_update, state.learner, jax.random.split(update_key, cfg.updates_per_iteration))
+        learner, losses = jax.lax.scan(
+            one_update, state.learner, jax.random.split(update_key, cfg.updates_per_iteration)
+        )
         losses = {name: jnp.mean(losses[name]) for name in self.loss_names}
-        metrics = {**losses, "exploration": exploration,
-                   "healthy": jnp.all(jnp.array([jnp.isfinite(value) for value in losses.values()])),
-                   "finished_return_sum": finished.sum(), "finished_episodes": state.env.done.sum()}
+        metrics = {
+            **losses,
+            "exploration": exploration,
+            "healthy": jnp.all(jnp.array([jnp.isfinite(value) for value in losses.values()])),
+            "finished_return_sum": finished.sum(),
+            "finished_episodes": state.env.done.sum(),
+        }
         return state.replace(learner=learner, key=key, iteration=state.iteration + 1), metrics
 
     def abort_reason(self, metrics: dict) -> str:

@@ -7,7 +7,8 @@
   from the differentiable :class:`~dva.soft_rendering.SoftRenderer`.
 
 One :meth:`SHAC.iteration` (jit it) rolls the policy out for ``horizon`` steps over ``num_envs``
-environments (physics, and the rendering and frame stack of :class:`~dva.envs.PixelObservations`), differentiates the actor loss
+environments (physics, and the rendering and frame stack of :class:`~dva.envs.PixelObservations`),
+differentiates the actor loss
 ``L = −1/(N h) Σ [Σ_t γ^t r_t + γ^h V'(s_h)]`` through the dynamics, fits the critic to TD-λ
 targets for ``critic_iterations × critic_minibatches`` steps and updates the target critic.
 """
@@ -30,7 +31,7 @@ from dva.tasks import EnvState
 
 @dataclasses.dataclass(frozen=True)
 class SHACConfig:
-    """Hyperparameters (spec §1 defaults: Cartpole's row of Table 7)."""
+    """Hyperparameters (defaults: Cart-pole's row of the paper's Table 7)."""
 
     observation: Literal["pixels", "state"] = "pixels"
     gradient: Literal["decoupled", "full"] = "decoupled"
@@ -46,7 +47,7 @@ class SHACConfig:
     abort_grad_norm: float = 1e8  # an actor gradient norm above this (or NaN) stops training (ref. code)
     state_grad_clip: float | None = None
     """Per-env bound on the norm of the gradient w.r.t. (qpos, qvel) as it flows back from one
-    step to the one before (AHAC's per-step clipping, spec §7), in units of one env's window return
+    step to the one before (AHAC's per-step clipping), in units of one env's window return
     (the loss is their mean over N·h, so the bound on the loss's cotangent is this ÷ N·h);
     None: exact gradients."""
     pre_tanh_penalty: float = 0.0
@@ -66,7 +67,7 @@ class SHACConfig:
     gradients — one chunk's activations in memory; 0 reuses the backward passes the rollout kept
     for every step instead (no recomputed forward, all h steps' activations in memory; for
     hardware where the recompute costs more than it saves). Chunks of 1 step have the least
-    memory (``benchmarks/RESULTS.md``, "Convolution gradients inside loops")."""
+    memory (docs/development.md, "CPU speed notes")."""
     use_critic: bool = True
     """False: the paper's value ablation — the window's end bootstraps nothing (V = 0) and no
     critic is trained."""
@@ -91,11 +92,15 @@ class SHACConfig:
             object.__setattr__(self, "actor_backward_chunk", 0)
         chunk = self.actor_backward_chunk
         if not isinstance(chunk, int) or chunk < 0 or (chunk and self.horizon % chunk):
-            raise ValueError(f"actor_backward_chunk = {chunk!r} is not allowed; use 0 (the kept backward passes) or a divisor of "
-                             f"horizon = {self.horizon}")
+            raise ValueError(
+                f"actor_backward_chunk = {chunk!r} is not allowed; use 0 (the kept backward passes) or a divisor of "
+                f"horizon = {self.horizon}"
+            )
         if (self.num_envs * self.horizon) % self.critic_minibatches:
-            raise ValueError(f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
-                             f"{self.critic_minibatches} critic minibatches")
+            raise ValueError(
+                f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
+                f"{self.critic_minibatches} critic minibatches"
+            )
 
 
 class TrainState(struct.PyTreeNode):
@@ -136,23 +141,33 @@ class SHAC:
             if not env.has_pixels:
                 raise ValueError("pixel observations need an env wrapper with a renderer")
             if config.gradient == "full" and not env.differentiable_pixels:
-                raise ValueError("gradient 'full' through pixels needs a differentiable renderer (SoftRenderer); "
-                                 "the Warp renderer is not — use gradient='decoupled' (D.Va)")
+                raise ValueError(
+                    "gradient 'full' through pixels needs a differentiable renderer (SoftRenderer); "
+                    "the Warp renderer is not — use gradient='decoupled' (D.Va)"
+                )
         self.env, self.task, self.config = env, env.task, config
-        self.actor = Actor(self.task.action_dim, config.actor_hidden, pixels=config.observation == "pixels",
-                           trunk=config.trunk, init_log_std=config.init_log_std)
+        self.actor = Actor(
+            self.task.action_dim,
+            config.actor_hidden,
+            pixels=config.observation == "pixels",
+            trunk=config.trunk,
+            init_log_std=config.init_log_std,
+        )
         self.critic = Critic(config.critic_hidden)
 
         def optimizer(lr: float, steps: int) -> optax.GradientTransformation:
             """Adam after global-norm clipping, learning rate decayed linearly over ``steps``."""
             schedule = optax.linear_schedule(lr, config.final_lr, steps)
-            return optax.chain(optax.clip_by_global_norm(config.clip_grad_norm),
-                               optax.adam(schedule, b1=config.betas[0], b2=config.betas[1]))
+            return optax.chain(
+                optax.clip_by_global_norm(config.clip_grad_norm),
+                optax.adam(schedule, b1=config.betas[0], b2=config.betas[1]),
+            )
 
         self.actor_opt = optimizer(config.actor_lr, config.lr_decay_iterations)
         # The critic takes critic_iterations × critic_minibatches steps per iteration.
-        self.critic_opt = optimizer(config.critic_lr,
-                                    config.lr_decay_iterations * config.critic_iterations * config.critic_minibatches)
+        self.critic_opt = optimizer(
+            config.critic_lr, config.lr_decay_iterations * config.critic_iterations * config.critic_minibatches
+        )
 
     @property
     def env_steps_per_iteration(self) -> int:
@@ -170,10 +185,16 @@ class SHAC:
         actor_params = self.actor.init(actor_key, self.observe(env, RunningStats.create(self.task.obs_dim)))
         critic_params = self.critic.init(critic_key, env.obs)
         return TrainState(
-            actor_params=actor_params, critic_params=critic_params, target_critic_params=critic_params,
-            actor_opt_state=self.actor_opt.init(actor_params), critic_opt_state=self.critic_opt.init(critic_params),
-            obs_stats=RunningStats.create(self.task.obs_dim), env=env,
-            episode_return=jnp.zeros(self.config.num_envs), key=key, iteration=jnp.zeros((), jnp.int32),
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_critic_params=critic_params,
+            actor_opt_state=self.actor_opt.init(actor_params),
+            critic_opt_state=self.critic_opt.init(critic_params),
+            obs_stats=RunningStats.create(self.task.obs_dim),
+            env=env,
+            episode_return=jnp.zeros(self.config.num_envs),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
         )
 
     def observe(self, env: EnvState, stats: RunningStats) -> jax.Array:
@@ -220,8 +241,9 @@ class SHAC:
                 pre_tanh, actor_vjp = self.pre_tanh_action(actor_params, observation, eps), None
             pre_tanh = pre_tanh + offset
             if cfg.state_grad_clip is not None:
-                qpos, qvel = clip_gradient_per_env((env.data.qpos, env.data.qvel),
-                                                   cfg.state_grad_clip / (cfg.num_envs * len(noise)))
+                qpos, qvel = clip_gradient_per_env(
+                    (env.data.qpos, env.data.qvel), cfg.state_grad_clip / (cfg.num_envs * len(noise))
+                )
                 env = env.replace(data=env.data.replace(qpos=qpos, qvel=qvel))
             env = self.env.step(env, jnp.tanh(pre_tanh))
             next_value = jnp.where(env.terminated, 0.0, value(env.final_obs))
@@ -231,10 +253,24 @@ class SHAC:
             ended = jnp.where(env.done, discounted_sum + discount * next_value, 0.0)
             episode_return = episode_return + jax.lax.stop_gradient(env.reward)
             finished_return = jnp.where(env.done, episode_return, 0.0)
-            carry = (env, jnp.where(env.done, 1.0, discount), jnp.where(env.done, 0.0, discounted_sum),
-                     jnp.where(env.done, 0.0, episode_return))
-            out = (ended, critic_obs, jax.lax.stop_gradient(env.reward), jax.lax.stop_gradient(next_value),
-                   env.done, finished_return, env.obs, observation, pre_tanh, actor_vjp)
+            carry = (
+                env,
+                jnp.where(env.done, 1.0, discount),
+                jnp.where(env.done, 0.0, discounted_sum),
+                jnp.where(env.done, 0.0, episode_return),
+            )
+            out = (
+                ended,
+                critic_obs,
+                jax.lax.stop_gradient(env.reward),
+                jax.lax.stop_gradient(next_value),
+                env.done,
+                finished_return,
+                env.obs,
+                observation,
+                pre_tanh,
+                actor_vjp,
+            )
             return carry, out
 
         num_envs = cfg.num_envs
@@ -247,8 +283,11 @@ class SHAC:
         loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise)) + cfg.pre_tanh_penalty * jnp.mean(actions**2)
         boundary = done.at[-1].set(True)
         trajectory = Trajectory(critic_obs=critic_obs, reward=reward, next_value=next_value, boundary=boundary)
-        stats = {"finished_return_sum": finished_return.sum(), "finished_episodes": done.sum(),
-                 "mean_reward": reward.mean()}
+        stats = {
+            "finished_return_sum": finished_return.sum(),
+            "finished_episodes": done.sum(),
+            "mean_reward": reward.mean(),
+        }
         # The actor's inputs, pre-tanh actions and (decoupled) backward passes, per step.
         taken = {"observations": observations, "actions": actions, "actor_vjp": vjps}
         return loss, (env, episode_return, trajectory, visited_obs, stats, taken)
@@ -268,7 +307,8 @@ class SHAC:
             return loss, aux, grads
         offsets = jnp.zeros_like(noise)
         (loss, aux), action_grad = jax.value_and_grad(
-            lambda w: self.rollout(actor_params, train, noise, w), has_aux=True)(offsets)
+            lambda w: self.rollout(actor_params, train, noise, w), has_aux=True
+        )(offsets)
         return loss, aux, self.actor_backward(actor_params, aux[-1], noise, action_grad)
 
     def actor_backward(self, actor_params: dict, taken: dict, noise: jax.Array, action_grad: jax.Array) -> dict:
@@ -279,12 +319,14 @@ class SHAC:
         loop only as :func:`dva.networks.conv_valid` writes them.)"""
         cfg = self.config
         if cfg.actor_backward_chunk == 0:
+
             def step_gradient(step):
                 vjp, grad = step
                 return vjp(grad)[0]
 
             steps = (taken["actor_vjp"], action_grad)
         else:
+
             def chunks(x: jax.Array) -> jax.Array:  # (h, N, ...) → (h / c, c·N, ...)
                 return x.reshape((-1, cfg.actor_backward_chunk * x.shape[1]) + x.shape[2:])
 
@@ -293,8 +335,11 @@ class SHAC:
                 return jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)[1](grad)[0]
 
             steps = (chunks(taken["observations"]), chunks(noise), chunks(action_grad))
-        grads, _ = jax.lax.scan(lambda total, step: (jax.tree.map(jnp.add, total, step_gradient(step)), None),
-                                jax.tree.map(jnp.zeros_like, actor_params), steps)
+        grads, _ = jax.lax.scan(
+            lambda total, step: (jax.tree.map(jnp.add, total, step_gradient(step)), None),
+            jax.tree.map(jnp.zeros_like, actor_params),
+            steps,
+        )
         return grads
 
     # ---- the critic ---------------------------------------------------------------------------
@@ -323,7 +368,8 @@ class SHAC:
             return jax.lax.scan(minibatch_step, carry, order)
 
         (params, opt_state), losses = jax.lax.scan(
-            epoch, (train.critic_params, train.critic_opt_state), jax.random.split(key, cfg.critic_iterations))
+            epoch, (train.critic_params, train.critic_opt_state), jax.random.split(key, cfg.critic_iterations)
+        )
         return params, opt_state, losses[-1].mean()
 
     # ---- one iteration ------------------------------------------------------------------------
@@ -341,22 +387,36 @@ class SHAC:
         # A bad gradient leaves the actor untouched; the training loop stops on it.
         actor_params, actor_opt_state = jax.tree.map(
             lambda new, old: jnp.where(healthy, new, old),
-            (actor_params, actor_opt_state), (train.actor_params, train.actor_opt_state))
+            (actor_params, actor_opt_state),
+            (train.actor_params, train.actor_opt_state),
+        )
 
         if cfg.use_critic:
             critic_params, critic_opt_state, critic_loss = self.critic_update(train, trajectory, critic_key)
         else:
             critic_params, critic_opt_state, critic_loss = train.critic_params, train.critic_opt_state, jnp.zeros(())
-        target = jax.tree.map(lambda t, p: cfg.target_alpha * t + (1.0 - cfg.target_alpha) * p,
-                              train.target_critic_params, critic_params)
-        train = train.replace(
-            actor_params=actor_params, critic_params=critic_params, target_critic_params=target,
-            actor_opt_state=actor_opt_state, critic_opt_state=critic_opt_state,
-            obs_stats=train.obs_stats.update(visited_obs), env=env,
-            episode_return=episode_return, key=key, iteration=train.iteration + 1,
+        target = jax.tree.map(
+            lambda t, p: cfg.target_alpha * t + (1.0 - cfg.target_alpha) * p, train.target_critic_params, critic_params
         )
-        metrics = {"actor_loss": loss, "actor_grad_norm": grad_norm, "critic_loss": critic_loss,
-                   "healthy": healthy, **stats}
+        train = train.replace(
+            actor_params=actor_params,
+            critic_params=critic_params,
+            target_critic_params=target,
+            actor_opt_state=actor_opt_state,
+            critic_opt_state=critic_opt_state,
+            obs_stats=train.obs_stats.update(visited_obs),
+            env=env,
+            episode_return=episode_return,
+            key=key,
+            iteration=train.iteration + 1,
+        )
+        metrics = {
+            "actor_loss": loss,
+            "actor_grad_norm": grad_norm,
+            "critic_loss": critic_loss,
+            "healthy": healthy,
+            **stats,
+        }
         return train, metrics
 
     # ---- the agent's policy ------------------------------------------------------------------
@@ -370,8 +430,10 @@ class SHAC:
         return jnp.tanh(self.pre_tanh_action(actor_params, self.actor_input(observation, obs_stats), None))
 
     def abort_reason(self, metrics: dict) -> str:
-        return (f"actor gradient norm {float(metrics['actor_grad_norm']):.3g} is NaN or above "
-                f"abort_grad_norm = {self.config.abort_grad_norm:.3g}")
+        return (
+            f"actor gradient norm {float(metrics['actor_grad_norm']):.3g} is NaN or above "
+            f"abort_grad_norm = {self.config.abort_grad_norm:.3g}"
+        )
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
@@ -395,13 +457,14 @@ def _clip_backward(max_norm, _, cotangent):
 clip_gradient_per_env.defvjp(_clip_forward, _clip_backward)
 
 
-def td_lambda_targets(reward: jax.Array, next_value: jax.Array, boundary: jax.Array,
-                      gamma: float, lam: float) -> jax.Array:
+def td_lambda_targets(
+    reward: jax.Array, next_value: jax.Array, boundary: jax.Array, gamma: float, lam: float
+) -> jax.Array:
     """TD-λ targets over a window (time-major, (h, N)).
 
     ``R_t = r_t + γ [(1 − λ) V_{t+1} + λ R_{t+1}]`` inside an episode and ``R_t = r_t + γ V_{t+1}``
     where the episode or the window ends after step t (``V_{t+1}`` is 0 on termination). This is
-    the spec's truncated sum ``(1−λ) Σ_k λ^{k−1} G_t^k + λ^{H−t−1} G_t^{H−t}`` computed backwards.
+    the truncated TD-λ sum ``(1−λ) Σ_k λ^{k−1} G_t^k + λ^{H−t−1} G_t^{H−t}`` computed backwards.
     """
 
     def back(next_return, inputs):

@@ -57,4 +57,4 @@ def machine_description() -> str:
     import platform
 
     device = jax.devices()[0]
-    return f"{platform.machine()} {os.cpu_count()} cores, JAX {jax.__version__} on {device.platform} ({device.device_kind})"
+    return f"{platform.machine()} {os.cpu_count()} cores, JAX {jax.__version__} on {device.platform} ({device.device_kind})"  # noqa: E501

@@ -11,14 +11,15 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from dva.algorithms import build_agent, make_config  # noqa: E402
 from dva.algorithms.shac import SHACConfig  # noqa: E402
 from dva.analysis.bench import markdown_table, write_csv  # noqa: E402
 from dva.analysis.profile import iteration_breakdown, per_million_steps  # noqa: E402
-from dva.algorithms import build_agent, make_config  # noqa: E402
 
 
-def measure_iteration(task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0,
-                      **overrides) -> tuple[SHACConfig, dict[str, float]]:
+def measure_iteration(
+    task: str, algo: str = "dva", preset: str = "cpu", seed: int = 0, **overrides
+) -> tuple[SHACConfig, dict[str, float]]:
     """The configuration and :func:`iteration_breakdown` of ``algo`` on ``task``, timed after one
     iteration (so the state is a realistic one, not the reset)."""
     config = make_config(task, algo, preset, **overrides)
@@ -28,17 +29,22 @@ def measure_iteration(task: str, algo: str = "dva", preset: str = "cpu", seed: i
     return config, iteration_breakdown(agent, state)
 
 
-def write_breakdown_report(config: SHACConfig, times: dict[str, float], out_dir: Path,
-                           title: str) -> tuple[list[Path], str]:
+def write_breakdown_report(
+    config: SHACConfig, times: dict[str, float], out_dir: Path, title: str
+) -> tuple[list[Path], str]:
     """``breakdown.csv``, ``breakdown.md`` and ``breakdown.png`` (one stacked bar, seconds per 1M steps)."""
     per_million = per_million_steps(times, config.num_envs, config.horizon)
     total = sum(per_million.values())
-    rows = [{"part": part, "seconds_per_million_steps": seconds, "share": seconds / total}
-            for part, seconds in per_million.items()]
+    rows = [
+        {"part": part, "seconds_per_million_steps": seconds, "share": seconds / total}
+        for part, seconds in per_million.items()
+    ]
     table = write_csv(out_dir / "breakdown.csv", rows)
-    markdown = markdown_table(["part", "s per 1M steps", "share"],
-                              [(r["part"], f"{r['seconds_per_million_steps']:.0f}", f"{r['share']:.0%}") for r in rows]
-                              + [("total", f"{total:.0f}", "100%")])
+    markdown = markdown_table(
+        ["part", "s per 1M steps", "share"],
+        [(r["part"], f"{r['seconds_per_million_steps']:.0f}", f"{r['share']:.0%}") for r in rows]
+        + [("total", f"{total:.0f}", "100%")],
+    )
     (out_dir / "breakdown.md").write_text(f"{title}\n\n{markdown}\n")
     fig, ax = plt.subplots(figsize=(8, 2.6), dpi=120)
     left = 0.0

@@ -65,17 +65,24 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
         raise ValueError(f"figure {figure!r} is not allowed; use one of: {', '.join(FIGURES)}")
     if frames is not None and figure != "ablation-frames":
         raise ValueError(f"frames = {list(frames)} is only allowed with ablation-frames, not with {figure!r}")
-    if frames is not None and (not frames or len(set(frames)) != len(frames)
-                               or not all(isinstance(k, int) and k >= 1 for k in frames)):
+    if frames is not None and (
+        not frames or len(set(frames)) != len(frames) or not all(isinstance(k, int) and k >= 1 for k in frames)
+    ):
         raise ValueError(f"frames = {list(frames)} is not allowed; use distinct ints ≥ 1, e.g. 1 2 3")
     if figure == "ablation-value":
         per_task = [("D.Va", "dva", ()), ("D.Va without critic", "dva", (("use_critic", False),))]
     elif figure == "ablation-frames":
-        per_task = [(f"D.Va, {k} frame{'s' * (k > 1)}", "dva", (("frame_stack", k),))
-                    for k in (FRAME_STACKS if frames is None else frames)]
+        per_task = [
+            (f"D.Va, {k} frame{'s' * (k > 1)}", "dva", (("frame_stack", k),))
+            for k in (FRAME_STACKS if frames is None else frames)
+        ]
     else:
-        algos = {"fig4": ("dva", "drqv2", "curl", "dreamerv3"), "fig6": ("dva", "dagger"),
-                 "fig7": ("dva", "shac-pixels"), "fig13": ("shac", "dpg-state")}[figure]
+        algos = {
+            "fig4": ("dva", "drqv2", "curl", "dreamerv3"),
+            "fig6": ("dva", "dagger"),
+            "fig7": ("dva", "shac-pixels"),
+            "fig13": ("shac", "dpg-state"),
+        }[figure]
         per_task = [(algo, algo, ()) for algo in algos]
     return [Setting(label, task, algo, overrides) for task in tasks for label, algo, overrides in per_task]
 
@@ -94,13 +101,29 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
         return "skipped (complete)"
     if (run_dir / "run.json").exists() and checkpoint_manager(run_dir).latest_step() is not None:
         logged = read_progress(run_dir)  # the minutes it has, wall_time of its last row
-        train(setting.task, setting.algo, run_dir=run_dir, resume=True, eval_every=None, eval_minutes=EVAL_MINUTES,
-              minutes=max(minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes, 0.0))
+        train(
+            setting.task,
+            setting.algo,
+            run_dir=run_dir,
+            resume=True,
+            eval_every=None,
+            eval_minutes=EVAL_MINUTES,
+            minutes=max(minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes, 0.0),
+        )
         action = "resumed"
     else:
         shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
-        train(setting.task, setting.algo, preset=preset, seed=seed, minutes=minutes, run_dir=run_dir,
-              eval_every=None, eval_minutes=EVAL_MINUTES, **dict(setting.overrides))
+        train(
+            setting.task,
+            setting.algo,
+            preset=preset,
+            seed=seed,
+            minutes=minutes,
+            run_dir=run_dir,
+            eval_every=None,
+            eval_minutes=EVAL_MINUTES,
+            **dict(setting.overrides),
+        )
         action = "trained"
     (run_dir / COMPLETE).write_text(json.dumps({"minutes": minutes}))
     return action
@@ -130,10 +153,11 @@ class Job:
 def cpu_groups(cpus: Sequence[int], workers: int) -> list[tuple[int, ...]]:
     """``cpus`` split into ``workers`` disjoint groups of equal size (a remainder stays unused)."""
     if not isinstance(workers, int) or not 1 <= workers <= len(cpus):
-        raise ValueError(f"workers = {workers!r} is not allowed; use an int from 1 to the {len(cpus)} CPUs "
-                         "this process may use")
+        raise ValueError(
+            f"workers = {workers!r} is not allowed; use an int from 1 to the {len(cpus)} CPUs this process may use"
+        )
     ordered, size = sorted(cpus), len(cpus) // workers
-    return [tuple(ordered[i * size:(i + 1) * size]) for i in range(workers)]
+    return [tuple(ordered[i * size : (i + 1) * size]) for i in range(workers)]
 
 
 def available_cpus() -> list[int]:
@@ -148,8 +172,11 @@ def launch_pinned(job: Job, cpus: tuple[int, ...]) -> str:
     log = Path(job.run_dir).with_suffix(".log")
     log.parent.mkdir(parents=True, exist_ok=True)
     with log.open("a") as output:
-        child = subprocess.Popen([sys.executable, "-m", "dva.analysis.compare", json.dumps(dataclasses.asdict(job))],
-                                 stdout=output, stderr=subprocess.STDOUT)
+        child = subprocess.Popen(
+            [sys.executable, "-m", "dva.analysis.compare", json.dumps(dataclasses.asdict(job))],
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
         # Pinned from here, not by a preexec_fn (unsafe to fork with JAX's threads running): Popen
         # returns once the child has exec'd, long before its interpreter starts any thread.
         if hasattr(os, "sched_setaffinity"):
@@ -160,8 +187,11 @@ def launch_pinned(job: Job, cpus: tuple[int, ...]) -> str:
     return f"ran on CPUs {','.join(map(str, cpus))} (log: {log})"
 
 
-def run_parallel(jobs: Sequence[Job], groups: Sequence[tuple[int, ...]],
-                 launch: Callable[[Job, tuple[int, ...]], str] = launch_pinned) -> list[str]:
+def run_parallel(
+    jobs: Sequence[Job],
+    groups: Sequence[tuple[int, ...]],
+    launch: Callable[[Job, tuple[int, ...]], str] = launch_pinned,
+) -> list[str]:
     """Run ``jobs`` with one at a time on each CPU group, in order; returns what each did. Every
     job runs even when another fails; then the first failure is raised."""
     free: queue.Queue[tuple[int, ...]] = queue.Queue()
@@ -185,9 +215,17 @@ def run_parallel(jobs: Sequence[Job], groups: Sequence[tuple[int, ...]],
     return results  # type: ignore[return-value]
 
 
-def compare(figure: str, tasks: list[str], seeds: list[int], minutes: float, out: Path, preset: str = "cpu",
-            threshold: float | None = None, workers: int = 1,
-            frames: Sequence[int] | None = None) -> tuple[list[Path], str]:
+def compare(
+    figure: str,
+    tasks: list[str],
+    seeds: list[int],
+    minutes: float,
+    out: Path,
+    preset: str = "cpu",
+    threshold: float | None = None,
+    workers: int = 1,
+    frames: Sequence[int] | None = None,
+) -> tuple[list[Path], str]:
     """Run (or complete) every run of ``figure`` and write its curves and table into ``out``;
     ``workers`` > 1 runs that many at once, each on its own share of the CPUs; ``frames`` picks
     ablation-frames' stack sizes."""
@@ -200,8 +238,18 @@ def compare(figure: str, tasks: list[str], seeds: list[int], minutes: float, out
         for seed in seeds:
             run_dir = out / "runs" / f"{setting.slug}_s{seed}"
             labels[run_dir] = f"{setting.label} on {setting.task}"
-            jobs.append(Job(figure, setting.task, setting.slug, seed, minutes, preset, str(run_dir),
-                            None if frames is None else tuple(frames)))
+            jobs.append(
+                Job(
+                    figure,
+                    setting.task,
+                    setting.slug,
+                    seed,
+                    minutes,
+                    preset,
+                    str(run_dir),
+                    None if frames is None else tuple(frames),
+                )
+            )
 
     def report(job: Job, action: str) -> None:
         print(f"{labels[Path(job.run_dir)]}, seed {job.seed}: {action}", flush=True)

@@ -21,13 +21,17 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from dva.algorithms import build_agent, make_config  # noqa: E402
 from dva.algorithms.shac import SHAC, TrainState  # noqa: E402
 from dva.analysis.bench import markdown_table, timed, write_csv  # noqa: E402
-from dva.algorithms import build_agent, make_config  # noqa: E402
 
 COMPARED = ("dva", "shac-pixels")  # the method and its baseline (paper's "SHAC + diff. rendering")
-PAPER_BACKWARD_S = {  # spec §4, Table 1 (RTX 4080): (D.Va, visual SHAC)
-    "cartpole_swingup": (0.11, 0.36), "hopper": (0.19, 0.51), "ant": (0.21, 0.58), "humanoid": (0.68, 1.38)}
+PAPER_BACKWARD_S = {  # the paper's Table 1 (RTX 4080): (D.Va, visual SHAC)
+    "cartpole_swingup": (0.11, 0.36),
+    "hopper": (0.19, 0.51),
+    "ant": (0.21, 0.58),
+    "humanoid": (0.68, 1.38),
+}
 
 
 def gradient_cost(agent: SHAC, state: TrainState, timing: bool = True) -> dict[str, float]:
@@ -52,8 +56,9 @@ def planned_memory_bytes(compiled: jax.stages.Compiled) -> int:
     assignment (one block on CPU; scan residuals included). XLA's own ``peak_memory_in_bytes`` is
     not usable on CPU: it reports 2 MB for a scan whose residuals take 128 MB."""
     stats = compiled.memory_analysis()
-    return (stats.argument_size_in_bytes + stats.output_size_in_bytes + stats.temp_size_in_bytes
-            - stats.alias_size_in_bytes)
+    return (
+        stats.argument_size_in_bytes + stats.output_size_in_bytes + stats.temp_size_in_bytes - stats.alias_size_in_bytes
+    )
 
 
 def available_memory_bytes() -> float:
@@ -64,8 +69,16 @@ def available_memory_bytes() -> float:
     return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
 
 
-def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image_size: int = 84,
-                  seed: int = 0, chunk: int = 1, kept: bool = False, timing: bool = True) -> list[dict]:
+def measure_costs(
+    tasks: list[str],
+    num_envs: int = 32,
+    horizon: int = 32,
+    image_size: int = 84,
+    seed: int = 0,
+    chunk: int = 1,
+    kept: bool = False,
+    timing: bool = True,
+) -> list[dict]:
     """One row per task and variant: D.Va with ``actor_backward_chunk = chunk``, with ``kept`` also
     D.Va reusing the rollout's kept backward passes (chunk 0), and visual SHAC — same networks,
     envs, horizon, images. Without ``timing`` only the memory, from compiling (minutes instead of
@@ -76,14 +89,21 @@ def measure_costs(tasks: list[str], num_envs: int = 32, horizon: int = 32, image
     for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
         for algo, algo_chunk, variant in variants:
             overrides = {"actor_backward_chunk": algo_chunk} if algo == COMPARED[0] else {}
-            config = make_config(task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size,
-                                 **overrides)
+            config = make_config(
+                task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size, **overrides
+            )
             agent = build_agent(task, algo, config)
             init = jax.jit(agent.init) if timing else lambda key: jax.eval_shape(agent.init, key)
             state = init(jax.random.PRNGKey(seed))
-            rows.append({"task": task, "algo": algo, "variant": variant,
-                         "actor_backward_chunk": "" if algo_chunk is None else algo_chunk,  # 0: kept
-                         **gradient_cost(agent, state, timing)})
+            rows.append(
+                {
+                    "task": task,
+                    "algo": algo,
+                    "variant": variant,
+                    "actor_backward_chunk": "" if algo_chunk is None else algo_chunk,  # 0: kept
+                    **gradient_cost(agent, state, timing),
+                }
+            )
     return rows
 
 
@@ -95,9 +115,15 @@ def ratios(rows: list[dict]) -> list[dict]:
         shac = next(r for r in rows if r["task"] == task and r["algo"] == COMPARED[1])
         paper = PAPER_BACKWARD_S.get(task)
         for dva in (r for r in rows if r["task"] == task and r["algo"] == COMPARED[0]):
-            out.append({"task": task, "variant": dva["variant"], "backward_ratio": shac["backward_s"] / dva["backward_s"],
-                        "memory_ratio": shac["peak_memory_mb"] / dva["peak_memory_mb"],
-                        "paper_backward_ratio": paper[1] / paper[0] if paper else float("nan")})
+            out.append(
+                {
+                    "task": task,
+                    "variant": dva["variant"],
+                    "backward_ratio": shac["backward_s"] / dva["backward_s"],
+                    "memory_ratio": shac["peak_memory_mb"] / dva["peak_memory_mb"],
+                    "paper_backward_ratio": paper[1] / paper[0] if paper else float("nan"),
+                }
+            )
     return out
 
 
@@ -110,9 +136,14 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     variants = list(dict.fromkeys(r["variant"] for r in rows))
     by_key = {(r["task"], r["variant"]): r for r in rows}
     # Memory only (--no-timing): the times are NaN and get no panel.
-    panels = [(key, label) for key, label in (("backward_s", "backward time per iteration (s)"),
-                                              ("peak_memory_mb", "peak memory of the gradient (MB)"))
-              if np.isfinite([r[key] for r in rows]).any()]
+    panels = [
+        (key, label)
+        for key, label in (
+            ("backward_s", "backward time per iteration (s)"),
+            ("peak_memory_mb", "peak memory of the gradient (MB)"),
+        )
+        if np.isfinite([r[key] for r in rows]).any()
+    ]
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.8), dpi=120, squeeze=False)
     axes = axes[0]
     x = np.arange(len(tasks))
@@ -132,13 +163,31 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     fig.savefig(figure)
     plt.close(fig)
     markdown = markdown_table(
-        ["task", "D.Va variant", "backward D.Va (s)", "backward visual SHAC (s)", "ratio", "paper ratio",
-         "memory D.Va (MB)", "memory visual SHAC (MB)", "ratio"],
-        [(r["task"], r["variant"], f"{by_key[(r['task'], r['variant'])]['backward_s']:.3f}",
-          f"{by_key[(r['task'], COMPARED[1])]['backward_s']:.3f}", f"{r['backward_ratio']:.1f}×",
-          f"{r['paper_backward_ratio']:.1f}×" if np.isfinite(r["paper_backward_ratio"]) else "–",
-          f"{by_key[(r['task'], r['variant'])]['peak_memory_mb']:.0f}",
-          f"{by_key[(r['task'], COMPARED[1])]['peak_memory_mb']:.0f}", f"{r['memory_ratio']:.1f}×")
-         for r in ratio_rows])
+        [
+            "task",
+            "D.Va variant",
+            "backward D.Va (s)",
+            "backward visual SHAC (s)",
+            "ratio",
+            "paper ratio",
+            "memory D.Va (MB)",
+            "memory visual SHAC (MB)",
+            "ratio",
+        ],
+        [
+            (
+                r["task"],
+                r["variant"],
+                f"{by_key[(r['task'], r['variant'])]['backward_s']:.3f}",
+                f"{by_key[(r['task'], COMPARED[1])]['backward_s']:.3f}",
+                f"{r['backward_ratio']:.1f}×",
+                f"{r['paper_backward_ratio']:.1f}×" if np.isfinite(r["paper_backward_ratio"]) else "–",
+                f"{by_key[(r['task'], r['variant'])]['peak_memory_mb']:.0f}",
+                f"{by_key[(r['task'], COMPARED[1])]['peak_memory_mb']:.0f}",
+                f"{r['memory_ratio']:.1f}×",
+            )
+            for r in ratio_rows
+        ],
+    )
     (out_dir / "cost.md").write_text(f"{title}\n\n{markdown}\n")
     return [table, ratio_table, figure, out_dir / "cost.md"], markdown

@@ -16,15 +16,16 @@ import matplotlib.pyplot as plt  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from dva.algorithms import build_agent, make_config  # noqa: E402
 from dva.algorithms.shac import SHAC  # noqa: E402
 from dva.analysis.bench import write_csv  # noqa: E402
-from dva.algorithms import build_agent, make_config  # noqa: E402
 
 FIELDS = ["iteration", "cosine", "apg_norm", "dpg_norm", "train_return"]
 
 
-def compare_gradients(task_name: str, iterations: int, every: int, seed: int = 0, preset: str = "cpu",
-                      **overrides) -> list[dict[str, float]]:
+def compare_gradients(
+    task_name: str, iterations: int, every: int, seed: int = 0, preset: str = "cpu", **overrides
+) -> list[dict[str, float]]:
     """Train SHAC (state, full gradient) for ``iterations``; every ``every`` iterations record the
     cosine similarity and norms of APG and DPG at the current parameters."""
     config = make_config(task_name, "shac", preset, **overrides)

@@ -23,8 +23,9 @@ from dva.analysis.plots import read_curve  # noqa: E402
 from dva.training import TrainingDiverged, train  # noqa: E402
 
 
-def gradient_norms(tasks: list[str], iterations: int, out_dir: Path, seed: int = 0, preset: str = "cpu",
-                   **overrides) -> tuple[list[dict], list[dict]]:
+def gradient_norms(
+    tasks: list[str], iterations: int, out_dir: Path, seed: int = 0, preset: str = "cpu", **overrides
+) -> tuple[list[dict], list[dict]]:
     """Train every algorithm of :data:`COMPARED` on every task for ``iterations``.
 
     Returns per-iteration rows (task, algo, iteration, actor_grad_norm) and one summary row per
@@ -37,8 +38,18 @@ def gradient_norms(tasks: list[str], iterations: int, out_dir: Path, seed: int =
             shutil.rmtree(run_dir, ignore_errors=True)  # a fresh run each time the analysis runs
             diverged: TrainingDiverged | None = None
             try:
-                train(task, algo, preset=preset, seed=seed, iterations=iterations, run_dir=run_dir, eval_every=None,
-                      checkpoint_every=iterations, abort_grad_norm=float("inf"), **overrides)
+                train(
+                    task,
+                    algo,
+                    preset=preset,
+                    seed=seed,
+                    iterations=iterations,
+                    run_dir=run_dir,
+                    eval_every=None,
+                    checkpoint_every=iterations,
+                    abort_grad_norm=float("inf"),
+                    **overrides,
+                )
             except TrainingDiverged as error:
                 diverged = error
             curve = read_curve(run_dir, "actor_grad_norm")
@@ -49,15 +60,20 @@ def gradient_norms(tasks: list[str], iterations: int, out_dir: Path, seed: int =
                 steps.append(diverged.iteration)
             rows += [{"task": task, "algo": algo, "iteration": i, "actor_grad_norm": g} for i, g in zip(steps, norms)]
             finite = np.array([g for g in norms if np.isfinite(g)])
-            summary.append({"task": task, "algo": algo, "iterations": len(norms),
-                            "median_norm": float(np.median(finite)) if finite.size else float("nan"),
-                            "max_norm": float(finite.max()) if finite.size else float("nan"),
-                            "diverged_at": diverged.iteration if diverged else ""})
+            summary.append(
+                {
+                    "task": task,
+                    "algo": algo,
+                    "iterations": len(norms),
+                    "median_norm": float(np.median(finite)) if finite.size else float("nan"),
+                    "max_norm": float(finite.max()) if finite.size else float("nan"),
+                    "diverged_at": diverged.iteration if diverged else "",
+                }
+            )
     return rows, summary
 
 
-def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path,
-                          title: str) -> tuple[list[Path], str]:
+def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path, title: str) -> tuple[list[Path], str]:
     """``gradnorm.csv`` (per iteration), ``gradnorm_summary.csv``/``.md`` and ``gradnorm.png``
     (one panel per task, log scale; a cross where a run diverged)."""
     table = write_csv(out_dir / "gradnorm.csv", rows)
@@ -67,7 +83,7 @@ def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path,
     for ax, task in zip(axes[0], tasks):
         for algo in COMPARED:
             run = [r for r in rows if r["task"] == task and r["algo"] == algo]
-            line, = ax.semilogy([r["iteration"] for r in run], [r["actor_grad_norm"] for r in run], label=algo, lw=1)
+            (line,) = ax.semilogy([r["iteration"] for r in run], [r["actor_grad_norm"] for r in run], label=algo, lw=1)
             end = next(s for s in summary if s["task"] == task and s["algo"] == algo)
             if end["diverged_at"] != "" and run and np.isfinite(run[-1]["actor_grad_norm"]):
                 ax.plot(run[-1]["iteration"], run[-1]["actor_grad_norm"], "x", color=line.get_color(), ms=9)
@@ -81,8 +97,19 @@ def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path,
     figure = out_dir / "gradnorm.png"
     fig.savefig(figure)
     plt.close(fig)
-    markdown = markdown_table(["task", "algo", "iterations", "median norm", "max norm", "diverged at"],
-                              [(s["task"], s["algo"], s["iterations"], f"{s['median_norm']:.3g}",
-                                f"{s['max_norm']:.3g}", s["diverged_at"] or "–") for s in summary])
+    markdown = markdown_table(
+        ["task", "algo", "iterations", "median norm", "max norm", "diverged at"],
+        [
+            (
+                s["task"],
+                s["algo"],
+                s["iterations"],
+                f"{s['median_norm']:.3g}",
+                f"{s['max_norm']:.3g}",
+                s["diverged_at"] or "–",
+            )
+            for s in summary
+        ],
+    )
     (out_dir / "gradnorm.md").write_text(f"{title}\n\n{markdown}\n")
     return [table, summary_table, figure, out_dir / "gradnorm.md"], markdown

@@ -50,8 +50,9 @@ def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
     return grid, values.mean(0), values.std(0)
 
 
-def grouped_curves(run_dirs: list[Path], metric: str,
-                   labels: dict[Path, str] | None = None) -> dict[str, list[dict[str, np.ndarray]]]:
+def grouped_curves(
+    run_dirs: list[Path], metric: str, labels: dict[Path, str] | None = None
+) -> dict[str, list[dict[str, np.ndarray]]]:
     """The runs' curves of ``metric`` grouped by label (the seeds of one setting): ``labels[run_dir]``
     where given, else :func:`run_label`."""
     if metric not in METRICS:
@@ -73,8 +74,12 @@ def first_reach(curve: dict[str, np.ndarray], metric: str, threshold: float) -> 
     return float(curve["wall_time"][reached[0]]), float(curve["env_steps"][reached[0]])
 
 
-def summarize_runs(run_dirs: list[Path], metric: str = "eval_return", threshold: float | None = None,
-                   labels: dict[Path, str] | None = None) -> list[dict]:
+def summarize_runs(
+    run_dirs: list[Path],
+    metric: str = "eval_return",
+    threshold: float | None = None,
+    labels: dict[Path, str] | None = None,
+) -> list[dict]:
     """One row per setting: seeds, final, late (each run's median over its last
     :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± std over seeds), run length, and
     with a ``threshold`` how many seeds reached it and the median wall-clock and env steps they
@@ -84,39 +89,69 @@ def summarize_runs(run_dirs: list[Path], metric: str = "eval_return", threshold:
         final = np.array([c[metric][-1] for c in curves])
         late = np.array([np.median(c[metric][-LATE_POINTS:]) for c in curves])
         best = np.array([c[metric].max() for c in curves])
-        row = {"setting": label, "seeds": len(curves), "final_mean": final.mean(), "final_std": final.std(),
-               "late_mean": late.mean(), "late_std": late.std(), "best_mean": best.mean(),
-               "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
-               "env_steps": np.mean([c["env_steps"][-1] for c in curves])}
+        row = {
+            "setting": label,
+            "seeds": len(curves),
+            "final_mean": final.mean(),
+            "final_std": final.std(),
+            "late_mean": late.mean(),
+            "late_std": late.std(),
+            "best_mean": best.mean(),
+            "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
+            "env_steps": np.mean([c["env_steps"][-1] for c in curves]),
+        }
         if threshold is not None:
             reached = [r for r in (first_reach(c, metric, threshold) for c in curves) if r is not None]
-            row.update(reached=len(reached),
-                       minutes_to_threshold=np.median([r[0] for r in reached]) / 60 if reached else np.nan,
-                       env_steps_to_threshold=np.median([r[1] for r in reached]) if reached else np.nan)
+            row.update(
+                reached=len(reached),
+                minutes_to_threshold=np.median([r[0] for r in reached]) / 60 if reached else np.nan,
+                env_steps_to_threshold=np.median([r[1] for r in reached]) if reached else np.nan,
+            )
         rows.append(row)
     return rows
 
 
 def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> str:
     """:func:`summarize_runs`'s rows as a markdown table."""
-    header = ["setting", "seeds", f"final {metric}", f"median of the last {LATE_POINTS}", f"best {metric}",
-              "minutes", "env steps"]
+    header = [
+        "setting",
+        "seeds",
+        f"final {metric}",
+        f"median of the last {LATE_POINTS}",
+        f"best {metric}",
+        "minutes",
+        "env steps",
+    ]
     if threshold is not None:
         header += [f"seeds ≥ {threshold:g}", "minutes to it (median)", "env steps to it (median)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
-        cells = [row["setting"], str(row["seeds"]), f"{row['final_mean']:.0f} ± {row['final_std']:.0f}",
-                 f"{row['late_mean']:.0f} ± {row['late_std']:.0f}", f"{row['best_mean']:.0f}", f"{row['minutes']:.1f}",
-                 f"{row['env_steps']:.0f}"]
+        cells = [
+            row["setting"],
+            str(row["seeds"]),
+            f"{row['final_mean']:.0f} ± {row['final_std']:.0f}",
+            f"{row['late_mean']:.0f} ± {row['late_std']:.0f}",
+            f"{row['best_mean']:.0f}",
+            f"{row['minutes']:.1f}",
+            f"{row['env_steps']:.0f}",
+        ]
         if threshold is not None:
-            cells += [f"{row['reached']} / {row['seeds']}", f"{row['minutes_to_threshold']:.1f}",
-                      f"{row['env_steps_to_threshold']:.0f}"]
+            cells += [
+                f"{row['reached']} / {row['seeds']}",
+                f"{row['minutes_to_threshold']:.1f}",
+                f"{row['env_steps_to_threshold']:.0f}",
+            ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
-def write_summary(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return",
-                  threshold: float | None = None, labels: dict[Path, str] | None = None) -> tuple[Path, str]:
+def write_summary(
+    run_dirs: list[Path],
+    out_dir: Path,
+    metric: str = "eval_return",
+    threshold: float | None = None,
+    labels: dict[Path, str] | None = None,
+) -> tuple[Path, str]:
     """Write ``summary.csv`` and ``summary.md`` (:func:`summarize_runs`); returns the CSV's path and
     the markdown."""
     rows = summarize_runs(run_dirs, metric, threshold, labels)
@@ -131,8 +166,9 @@ def write_summary(run_dirs: list[Path], out_dir: Path, metric: str = "eval_retur
     return path, markdown
 
 
-def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return",
-              labels: dict[Path, str] | None = None) -> list[Path]:
+def plot_runs(
+    run_dirs: list[Path], out_dir: Path, metric: str = "eval_return", labels: dict[Path, str] | None = None
+) -> list[Path]:
     """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png`` (curves grouped as in
     :func:`grouped_curves`); returns their paths."""
     groups = grouped_curves(run_dirs, metric, labels)
@@ -142,7 +178,7 @@ def plot_runs(run_dirs: list[Path], out_dir: Path, metric: str = "eval_return",
         fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
         for label, curves in groups.items():
             x, mean, std = mean_and_std(curves, x_key, metric)
-            line, = ax.plot(x, mean, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
+            (line,) = ax.plot(x, mean, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
             if len(curves) > 1:
                 ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.25)
         ax.set_xlabel(x_label)

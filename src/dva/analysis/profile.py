@@ -47,8 +47,9 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
         times["actor_backward"] = 0.0
     else:
         offsets = jnp.zeros_like(noise)
-        action_grad = jax.jit(lambda p, s, n, w: jax.value_and_grad(
-            lambda w: agent.rollout(p, s, n, w), has_aux=True)(w))
+        action_grad = jax.jit(
+            lambda p, s, n, w: jax.value_and_grad(lambda w: agent.rollout(p, s, n, w), has_aux=True)(w)
+        )
         _, physics_time, ((_, aux), grad) = timed(action_grad, params, state, noise, offsets)
         times["rollout_backward"] = physics_time - times["rollout_forward"]
         times["actor_backward"] = timed(jax.jit(agent.actor_backward), params, aux[-1], noise, grad)[1]
@@ -75,8 +76,9 @@ def render_beside_actor(agent: SHAC, params, qpos: jax.Array, observations) -> d
         return agent.env.renderer(q + 1e-6 * i).sum(dtype=jnp.int32)
 
     render = jax.jit(lambda q: jax.lax.map(lambda i: frame(q, i), steps))
-    together = jax.jit(lambda p, q, obs: jax.lax.map(
-        lambda x: (frame(q, x[0]), agent.actor.apply(p, x[1])[0].sum()), (steps, obs)))
+    together = jax.jit(
+        lambda p, q, obs: jax.lax.map(lambda x: (frame(q, x[0]), agent.actor.apply(p, x[1])[0].sum()), (steps, obs))
+    )
     return {"render": timed(render, qpos)[1], "render_with_actor": timed(together, params, qpos, observations)[1]}
 
 

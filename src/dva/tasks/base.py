@@ -26,7 +26,12 @@ from flax import struct
 from mujoco import mjx
 
 from dva.tasks.physics import (
-    PenaltyContact, check_physics, floor_contact_points, implicit_gradient_substep, joint_forces, penalty_forces,
+    PenaltyContact,
+    check_physics,
+    floor_contact_points,
+    implicit_gradient_substep,
+    joint_forces,
+    penalty_forces,
     penalty_step,
 )
 
@@ -104,8 +109,11 @@ class Task(abc.ABC):
         # makes every gradient NaN.
         spec.option.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
         if physics == "penalty":  # contacts, limits, springs and damping become explicit forces
-            spec.option.disableflags |= (mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_LIMIT
-                                         | mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+            spec.option.disableflags |= (
+                mujoco.mjtDisableBit.mjDSBL_CONTACT
+                | mujoco.mjtDisableBit.mjDSBL_LIMIT
+                | mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+            )
         self.mj_model: mujoco.MjModel = spec.compile()
         if physics == "penalty":
             self.contact_points = floor_contact_points(self.mj_model)
@@ -245,8 +253,13 @@ def add_scene(spec: mujoco.MjSpec) -> None:
     lights (no position, so they suit tracking cameras anywhere on the floor).
     """
     spec.add_texture(
-        name="checker", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-        width=256, height=256, rgb1=[0.32, 0.36, 0.42], rgb2=[0.18, 0.2, 0.25],
+        name="checker",
+        type=mujoco.mjtTexture.mjTEXTURE_2D,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        width=256,
+        height=256,
+        rgb1=[0.32, 0.36, 0.42],
+        rgb2=[0.18, 0.2, 0.25],
     )
     material = spec.add_material(name="floor")
     material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "checker"
@@ -254,11 +267,29 @@ def add_scene(spec: mujoco.MjSpec) -> None:
     material.texuniform = True
     world = spec.worldbody
     world.add_geom(
-        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[100.0, 100.0, 0.1], material="floor",
-        contype=0, conaffinity=1,
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[100.0, 100.0, 0.1],
+        material="floor",
+        contype=0,
+        conaffinity=1,
     )
-    world.add_light(name="key", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 5], dir=[0.3, 0.5, -1.0],
-                    diffuse=[0.75, 0.75, 0.75], specular=[0.2, 0.2, 0.2], castshadow=False)
-    world.add_light(name="fill", type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, pos=[0, 0, 5], dir=[-0.4, -0.2, -1.0],
-                    diffuse=[0.3, 0.3, 0.3], specular=[0.0, 0.0, 0.0], castshadow=False)
+    world.add_light(
+        name="key",
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        pos=[0, 0, 5],
+        dir=[0.3, 0.5, -1.0],
+        diffuse=[0.75, 0.75, 0.75],
+        specular=[0.2, 0.2, 0.2],
+        castshadow=False,
+    )
+    world.add_light(
+        name="fill",
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        pos=[0, 0, 5],
+        dir=[-0.4, -0.2, -1.0],
+        diffuse=[0.3, 0.3, 0.3],
+        specular=[0.0, 0.0, 0.0],
+        castshadow=False,
+    )
     spec.visual.headlight.ambient = [0.25, 0.25, 0.25]

@@ -12,7 +12,7 @@ from dva.tasks.physics import PenaltyContact
 
 
 class CartpoleSwingup(Task):
-    """Spec §2: ``R = 10 − θ² − 0.1 θ̇² − 0.05 x² − 0.1 ẋ²`` with θ measured from upright.
+    """Reward (the paper's appendix E): ``R = 10 − θ² − 0.1 θ̇² − 0.05 x² − 0.1 ẋ²`` with θ measured from upright.
 
     State observation (5-D, SHAC's): ``[x, ẋ, sin θ, cos θ, θ̇]``. Terminates when ``|x| ≥ 2.5``
     (the cart leaves the fixed camera's view); episodes last 240 steps (4 s).

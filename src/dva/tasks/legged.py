@@ -24,7 +24,9 @@ def rotate(quat: jax.Array, vec: jax.Array) -> jax.Array:
 
 def quat_multiply(a: jax.Array, b: jax.Array) -> jax.Array:
     """The Hamilton product ``a ⊗ b`` of two (w, x, y, z) quaternions."""
-    return jnp.concatenate([a[:1] * b[:1] - jnp.dot(a[1:], b[1:]), a[0] * b[1:] + b[0] * a[1:] + jnp.cross(a[1:], b[1:])])
+    return jnp.concatenate(
+        [a[:1] * b[:1] - jnp.dot(a[1:], b[1:]), a[0] * b[1:] + b[0] * a[1:] + jnp.cross(a[1:], b[1:])]
+    )
 
 
 class LeggedRunner(Task):
@@ -59,11 +61,15 @@ class LeggedRunner(Task):
     def initial_state(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
         pos_key, angle_key, axis_key, joint_key, vel_key = jax.random.split(key, 5)
         nj = self.mj_model.nq - 7
-        position = self.qpos0()[:3] + jax.random.uniform(pos_key, (3,), minval=-self.reset_position, maxval=self.reset_position)
+        position = self.qpos0()[:3] + jax.random.uniform(
+            pos_key, (3,), minval=-self.reset_position, maxval=self.reset_position
+        )
         half_angle = 0.5 * jax.random.uniform(angle_key, (), minval=-self.reset_rotation, maxval=self.reset_rotation)
         axis = jax.random.uniform(axis_key, (3,), minval=-0.5, maxval=0.5)
         turn = jnp.concatenate([jnp.cos(half_angle)[None], jnp.sin(half_angle) * axis / jnp.linalg.norm(axis)])
-        joints = self.initial_pose() + jax.random.uniform(joint_key, (nj,), minval=-self.reset_noise, maxval=self.reset_noise)
+        joints = self.initial_pose() + jax.random.uniform(
+            joint_key, (nj,), minval=-self.reset_noise, maxval=self.reset_noise
+        )
         qpos = jnp.concatenate([position, quat_multiply(self.qpos0()[3:7], turn), joints])
         qvel = jax.random.uniform(vel_key, (self.mj_model.nv,), minval=-self.reset_velocity, maxval=self.reset_velocity)
         return qpos, qvel
@@ -79,11 +85,19 @@ class LeggedRunner(Task):
     def observation(self, data: mjx.Data, action: jax.Array) -> jax.Array:
         up, heading = self.projections(data)
         quat = data.qpos[3:7] / jnp.linalg.norm(data.qpos[3:7])
-        return jnp.concatenate([
-            data.qpos[2:3], data.qpos[3:7], data.qvel[0:3], rotate(quat, data.qvel[3:6]),
-            data.qpos[7:], self.joint_velocity_scale * data.qvel[6:],
-            up[None], heading[None], action,
-        ])
+        return jnp.concatenate(
+            [
+                data.qpos[2:3],
+                data.qpos[3:7],
+                data.qvel[0:3],
+                rotate(quat, data.qvel[3:6]),
+                data.qpos[7:],
+                self.joint_velocity_scale * data.qvel[6:],
+                up[None],
+                heading[None],
+                action,
+            ]
+        )
 
     def is_terminated(self, data: mjx.Data) -> jax.Array:
         return data.qpos[2] < self.termination_height
@@ -135,8 +149,13 @@ class Humanoid(LeggedRunner):
 
     def build_spec(self) -> mujoco.MjSpec:
         spec = load_asset_spec("humanoid.xml")
-        spec.body("torso").add_camera(name="track", mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
-                                      pos=[0.0, -3.6, 0.3], xyaxes=[1, 0, 0, 0, 0.2, 1], fovy=50)
+        spec.body("torso").add_camera(
+            name="track",
+            mode=mujoco.mjtCamLight.mjCAMLIGHT_TRACKCOM,
+            pos=[0.0, -3.6, 0.3],
+            xyaxes=[1, 0, 0, 0, 0.2, 1],
+            fovy=50,
+        )
         return spec
 
     def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:

@@ -19,6 +19,7 @@ Both are pure functions of one environment's ``mjx.Data``; :class:`~dva.tasks.ba
 from __future__ import annotations
 
 import dataclasses
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -88,15 +89,22 @@ class JointForces:
 def joint_forces(model: mujoco.MjModel, limit_kd: float) -> JointForces:
     """The :class:`JointForces` of ``model``'s hinge and slide joints with ``limit_kd`` added to
     their own damping."""
-    hinge_or_slide = [j for j in range(model.njnt)
-                      if int(model.jnt_type[j]) in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)]
+    hinge_or_slide = [
+        j
+        for j in range(model.njnt)
+        if int(model.jnt_type[j]) in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+    ]
     limited = [j for j in hinge_or_slide if model.jnt_limited[j]]
     dof, qpos = model.jnt_dofadr[hinge_or_slide], model.jnt_qposadr[hinge_or_slide]
     return JointForces(
-        limit_dof=np.array(model.jnt_dofadr[limited], int), limit_qpos=np.array(model.jnt_qposadr[limited], int),
+        limit_dof=np.array(model.jnt_dofadr[limited], int),
+        limit_qpos=np.array(model.jnt_qposadr[limited], int),
         limit_range=np.array(model.jnt_range[limited]).reshape(-1, 2),
-        dof=np.array(dof, int), qpos=np.array(qpos, int), stiffness=np.array(model.jnt_stiffness[hinge_or_slide]),
-        reference=np.array(model.qpos_spring[qpos]), damping=np.array(model.dof_damping[dof]) + limit_kd,
+        dof=np.array(dof, int),
+        qpos=np.array(qpos, int),
+        stiffness=np.array(model.jnt_stiffness[hinge_or_slide]),
+        reference=np.array(model.qpos_spring[qpos]),
+        damping=np.array(model.dof_damping[dof]) + limit_kd,
     )
 
 
@@ -106,14 +114,19 @@ def floor_contact_points(model: mujoco.MjModel, floor: str = "floor") -> Contact
     floor_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, floor)
     if floor_id < 0:
         raise ValueError(f"the model has no geom named {floor!r} to make contacts with")
-    paired = {int(g) for g1, g2 in zip(model.pair_geom1, model.pair_geom2) for g in (g1, g2)
-              if floor_id in (g1, g2) and g != floor_id}
+    paired = {
+        int(g)
+        for g1, g2 in zip(model.pair_geom1, model.pair_geom2)
+        for g in (g1, g2)
+        if floor_id in (g1, g2) and g != floor_id
+    }
     bodies, points, radii = [], [], []
     for g in range(model.ngeom):
         if g == floor_id or model.geom_bodyid[g] == 0:
             continue
-        collides = (model.geom_contype[g] & model.geom_conaffinity[floor_id]) or \
-                   (model.geom_conaffinity[g] & model.geom_contype[floor_id])
+        collides = (model.geom_contype[g] & model.geom_conaffinity[floor_id]) or (
+            model.geom_conaffinity[g] & model.geom_contype[floor_id]
+        )
         if not collides and g not in paired:
             continue
         size, kind = model.geom_size[g], model.geom_type[g]
@@ -126,8 +139,10 @@ def floor_contact_points(model: mujoco.MjModel, floor: str = "floor") -> Contact
             local, radius = signs * size, 0.0
         else:
             name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g)
-            raise ValueError(f"geom {name!r} of type {mujoco.mjtGeom(kind).name} cannot make penalty contacts; "
-                             "use spheres, capsules or boxes")
+            raise ValueError(
+                f"geom {name!r} of type {mujoco.mjtGeom(kind).name} cannot make penalty contacts; "
+                "use spheres, capsules or boxes"
+            )
         rotation = np.zeros(9)
         mujoco.mju_quat2Mat(rotation, model.geom_quat[g])
         points.append(model.geom_pos[g] + local @ rotation.reshape(3, 3).T)
@@ -159,8 +174,9 @@ def contact_state(data: mjx.Data, points: ContactPoints) -> tuple[jax.Array, jax
     return centre.at[:, 2].add(-radius), depth
 
 
-def penalty_forces(model: mjx.Model, data: mjx.Data, points: ContactPoints, params: PenaltyContact,
-                   joints: JointForces) -> jax.Array:
+def penalty_forces(
+    model: mjx.Model, data: mjx.Data, points: ContactPoints, params: PenaltyContact, joints: JointForces
+) -> jax.Array:
     """Generalised forces (nv,) of the ground contacts and the joints' limits, springs and
     damping of one environment."""
     qfrc = joint_torques(data.qpos, data.qvel, params, joints)
@@ -204,8 +220,9 @@ def point_velocities(model: mjx.Model, data: mjx.Data, points: ContactPoints, po
     return spatial[:, 3:] + jnp.cross(spatial[:, :3], offset)
 
 
-def point_forces_to_joints(model: mjx.Model, data: mjx.Data, points: ContactPoints, position: jax.Array,
-                           force: jax.Array) -> jax.Array:
+def point_forces_to_joints(
+    model: mjx.Model, data: mjx.Data, points: ContactPoints, position: jax.Array, force: jax.Array
+) -> jax.Array:
     """Generalised forces (nv,) of world forces (P, 3) applied at ``position`` (P, 3): ``Σ_p J_pᵀ f_p``."""
     offset = position - data.subtree_com[jnp.asarray(model.body_rootid)[jnp.asarray(points.body)]]
     wrench = jnp.concatenate([jnp.cross(offset, force), force], axis=-1)  # (P, 6): torque, force
