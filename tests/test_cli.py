@@ -259,3 +259,43 @@ def test_train_flags_reach_every_config_field_of_the_chosen_algorithm_only():
     command = tyro.cli(TrainCommand, args=["--algo", "curl", "--shac.horizon", "8"])
     with pytest.raises(ValueError, match=r"--shac.\* flags \(horizon\) do not apply to --algo curl"):
         command.config_overrides()
+
+
+def test_a_new_algorithm_is_one_registry_entry(monkeypatch):
+    """Registering an algorithm is all it takes: its config's flags appear under its own group in
+    `dva train`, its preset and defining values reach its config."""
+    import dataclasses
+    import importlib
+
+    import dva.algorithms as algorithms
+    import dva.cli
+
+    @dataclasses.dataclass(frozen=True)
+    class ToyConfig:
+        """A toy algorithm's hyperparameters."""
+
+        num_envs: int = 4
+        image_size: int = 48
+        frame_stack: int = 1
+        step_size: float = 0.1
+        variant: str = "plain"
+
+    entry = dataclasses.replace(
+        algorithms.ALGORITHMS["drqv2"],
+        config_type=ToyConfig,
+        preset=lambda task, preset: dict(num_envs=8),
+        defining=dict(variant="toy"),
+        flag_group="toy",
+        divergence_hint="a smaller step (--toy.step-size)",
+    )
+    monkeypatch.setitem(algorithms.ALGORITHMS, "toy", entry)
+    cli = importlib.reload(dva.cli)
+    try:
+        command = cli.TrainCommand(algo="toy", toy=cli.OVERRIDES["toy"](step_size=0.5))
+        assert command.config_overrides() == {"step_size": 0.5}
+        assert "variant" not in {field.name for field in dataclasses.fields(cli.OVERRIDES["toy"])}
+        config = algorithms.make_config("cartpole_swingup", "toy", "cpu", step_size=0.5)
+        assert config == ToyConfig(num_envs=8, step_size=0.5, variant="toy")
+    finally:
+        monkeypatch.undo()
+        importlib.reload(dva.cli)

@@ -12,11 +12,6 @@ from typing import Annotated, Any, Optional, Union
 import tyro
 
 from dva.algorithms import ALGORITHMS, AlgoName
-from dva.algorithms.curl import CURLConfig
-from dva.algorithms.dagger import DAggerConfig
-from dva.algorithms.dreamerv3 import DreamerV3Config
-from dva.algorithms.drqv2 import DrQV2Config
-from dva.algorithms.shac import SHACConfig
 from dva.analysis.compare import FigureName
 from dva.configs import PresetName
 from dva.tasks import TASKS, check_physics, check_task_name
@@ -101,22 +96,18 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = (), aliases: d
     return overrides
 
 
-SHACOverrides = optional_fields(SHACConfig, exclude=("observation", "gradient"))
-DrQV2Overrides = optional_fields(DrQV2Config)
-CURLOverrides = optional_fields(CURLConfig)
-DAggerOverrides = optional_fields(DAggerConfig, aliases={"teacher": "--teacher"})
-DreamerV3Overrides = optional_fields(DreamerV3Config, exclude=("frame_stack",))
-CONFIG_GROUPS = {
-    "shac": SHACConfig,
-    "drqv2": DrQV2Config,
-    "curl": CURLConfig,
-    "dagger": DAggerConfig,
-    "dreamerv3": DreamerV3Config,
-}  # TrainCommand field → the config it overrides
+# `dva train --GROUP.FIELD` flags, one group per config class of the registry.
+FLAG_GROUPS: dict[str, Any] = {}
+for _entry in ALGORITHMS.values():
+    FLAG_GROUPS.setdefault(_entry.flag_group, _entry)
+OVERRIDES = {
+    group: optional_fields(entry.config_type, exclude=tuple(entry.defining), aliases=entry.flag_aliases)
+    for group, entry in FLAG_GROUPS.items()
+}
 
 
 @dataclasses.dataclass
-class TrainCommand:
+class TrainOptions:
     """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full), DPG on state, visual
     SHAC (pixels from the differentiable renderer, full gradient), or a baseline (DrQ-v2, CURL,
     state-to-visual DAgger, DreamerV3)."""
@@ -147,24 +138,13 @@ class TrainCommand:
     checkpoint_minutes: float = 2.0
     physics: str | None = None
     """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
-    shac: SHACOverrides = dataclasses.field(default_factory=SHACOverrides)
-    """Hyperparameters of dva / shac / dpg-state / shac-pixels (unset: the preset's)."""
-    drqv2: DrQV2Overrides = dataclasses.field(default_factory=DrQV2Overrides)
-    """Hyperparameters of drqv2 (unset: the preset's)."""
-    curl: CURLOverrides = dataclasses.field(default_factory=CURLOverrides)
-    """Hyperparameters of curl (unset: the preset's)."""
-    dagger: DAggerOverrides = dataclasses.field(default_factory=DAggerOverrides)
-    """Hyperparameters of dagger (unset: the preset's); --teacher (--dagger.teacher) RUN_DIR names a
-    SHAC run on the state to imitate (default: train one first for --dagger.teacher-minutes)."""
-    dreamerv3: DreamerV3Overrides = dataclasses.field(default_factory=DreamerV3Overrides)
-    """Hyperparameters of dreamerv3 (unset: the preset's)."""
 
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""
         overrides = {}
-        for group, config_type in CONFIG_GROUPS.items():
+        for group in FLAG_GROUPS:
             values = {k: v for k, v in dataclasses.asdict(getattr(self, group)).items() if v is not None}
-            if config_type is ALGORITHMS[self.algo].config_type:
+            if group == ALGORITHMS[self.algo].flag_group:
                 overrides = values
             elif values:
                 raise ValueError(f"--{group}.* flags ({', '.join(values)}) do not apply to --algo {self.algo}")
@@ -197,6 +177,26 @@ class TrainCommand:
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()
             EvalCommand(run_dir, video=run_dir / "policy.mp4", video_size=self.video_size).run()
+
+
+def _group_help(group: str) -> str:
+    algos = ", ".join(name for name, entry in ALGORITHMS.items() if entry.flag_group == group)
+    return f"Hyperparameters of {algos} (unset: the preset's)."
+
+
+TrainCommand = dataclasses.make_dataclass(
+    "TrainCommand",
+    [
+        (
+            group,
+            Annotated[overrides, tyro.conf.arg(help=_group_help(group))],
+            dataclasses.field(default_factory=overrides),
+        )
+        for group, overrides in OVERRIDES.items()
+    ],
+    bases=(TrainOptions,),
+)
+TrainCommand.__doc__ = TrainOptions.__doc__
 
 
 @dataclasses.dataclass

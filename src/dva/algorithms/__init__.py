@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 from dva.algorithms.base import Agent
 from dva.algorithms.curl import CURL, CURLConfig
@@ -42,6 +42,10 @@ class Algorithm:
     prepare: Callable[..., Any] = lambda config, *_: config
     # What to try when a run diverges, in the algorithm's own flags.
     divergence_hint: str = "lower learning rates"
+    # The `dva train --GROUP.FIELD` flags that override its config (every field but `defining`);
+    # algorithms sharing a config class share a group. `flag_aliases` gives some a short flag too.
+    flag_group: str = ""
+    flag_aliases: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 def _shac_renderer(config: SHACConfig) -> RendererKind:
@@ -52,7 +56,6 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
 
 
 SHAC_HINT = "a lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip"
-AlgoName = Literal["dva", "shac", "dpg-state", "shac-pixels", "drqv2", "curl", "dagger", "dreamerv3"]
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm(
         "D.Va: actor on pixels, gradient decoupled from the observation",
@@ -62,6 +65,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         dict(observation="pixels", gradient="decoupled"),
         _shac_renderer,
         divergence_hint=SHAC_HINT,
+        flag_group="shac",
     ),
     "shac": Algorithm(
         "SHAC: actor on the state, full gradient",
@@ -71,6 +75,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         dict(observation="state", gradient="full"),
         _shac_renderer,
         divergence_hint=SHAC_HINT,
+        flag_group="shac",
     ),
     "dpg-state": Algorithm(
         "decoupled gradient, actor on the state (paper Fig 13)",
@@ -80,6 +85,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         dict(observation="state", gradient="decoupled"),
         _shac_renderer,
         divergence_hint=SHAC_HINT,
+        flag_group="shac",
     ),
     "shac-pixels": Algorithm(
         "visual SHAC: actor on differentiably rendered pixels, full gradient",
@@ -89,6 +95,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         dict(observation="pixels", gradient="full"),
         _shac_renderer,
         divergence_hint=SHAC_HINT,
+        flag_group="shac",
     ),
     "drqv2": Algorithm(
         "DrQ-v2: DDPG from pixels with random-shift augmentation",
@@ -98,6 +105,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         {},
         lambda config: "warp",
         divergence_hint="a lower learning rate (--drqv2.lr)",
+        flag_group="drqv2",
     ),
     "curl": Algorithm(
         "CURL: SAC from pixels with a contrastive auxiliary loss",
@@ -107,6 +115,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         {},
         lambda config: "warp",
         divergence_hint="a lower learning rate (--curl.lr)",
+        flag_group="curl",
     ),
     "dagger": Algorithm(
         "state-to-visual DAgger: a pixel student imitates a SHAC teacher on the state",
@@ -117,18 +126,22 @@ ALGORITHMS: dict[str, Algorithm] = {
         lambda config: "warp",
         train_teacher_if_missing,
         divergence_hint="a lower learning rate (--dagger.lr)",
+        flag_group="dagger",
+        flag_aliases={"teacher": "--teacher"},
     ),
     "dreamerv3": Algorithm(
         "DreamerV3: a world model from pixels (RSSM), actor and critic in imagination",
         DreamerV3Config,
         DreamerV3,
         dreamerv3_preset,
-        {},
+        dict(frame_stack=1),
         lambda config: "warp",
         divergence_hint="lower learning rates (--dreamerv3.model-lr, --dreamerv3.actor-lr, --dreamerv3.critic-lr)",
+        flag_group="dreamerv3",
     ),
 }
-assert set(get_args(AlgoName)) == set(ALGORITHMS)
+AlgoName = Literal[tuple(ALGORITHMS)]  # the names `dva train --algo` accepts
+assert all(entry.flag_group for entry in ALGORITHMS.values())
 
 # run.json files written before fields were renamed still load.
 RENAMED_FIELDS: dict[type, dict[str, str]] = {
