@@ -29,7 +29,7 @@ def xla_strided_conv4_transpose(x, kernel):
 @contextlib.contextmanager
 def convolutions(form: str):
     """Trace the DreamerV3 conv stacks with ``form``'s convolutions ("blocks": ours, "xla")."""
-    import dva.networks as networks
+    import dva.networks.dreamer as networks
 
     ours = networks.strided_conv4, networks.strided_conv4_transpose
     if form == "xla":

@@ -1,0 +1,50 @@
+"""The networks, by family: :mod:`~dva.networks.conv` (the shared convolutions and pixel
+encoder), :mod:`~dva.networks.actor_critic` (D.Va / SHAC), :mod:`~dva.networks.off_policy`
+(DrQ-v2, CURL), :mod:`~dva.networks.dreamer` (DreamerV3)."""
+
+from dva.networks.actor_critic import MLP, Actor, Critic, RunningStats
+from dva.networks.conv import CONV_DIMENSIONS, Conv, PixelEncoder, conv_valid, scale_pixels
+from dva.networks.dreamer import (
+    RSSM,
+    ConvDecoder,
+    ConvEncoder,
+    DreamerMLP,
+    StridedConv4,
+    norm_silu,
+    strided_conv4,
+    strided_conv4_transpose,
+)
+from dva.networks.off_policy import (
+    DeterministicActor,
+    Projection,
+    ReluMLP,
+    SquashedGaussianActor,
+    TwinQ,
+    feature_trunk,
+)
+
+__all__ = [
+    "CONV_DIMENSIONS",
+    "MLP",
+    "RSSM",
+    "Actor",
+    "Conv",
+    "ConvDecoder",
+    "ConvEncoder",
+    "Critic",
+    "DeterministicActor",
+    "DreamerMLP",
+    "PixelEncoder",
+    "Projection",
+    "ReluMLP",
+    "RunningStats",
+    "SquashedGaussianActor",
+    "StridedConv4",
+    "TwinQ",
+    "conv_valid",
+    "feature_trunk",
+    "norm_silu",
+    "scale_pixels",
+    "strided_conv4",
+    "strided_conv4_transpose",
+]
