@@ -166,7 +166,10 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
     fields = {field.name for field in dataclasses.fields(entry.config_type)}
     for key in overrides:
         if key in entry.defining:
-            raise ValueError(f"{key!r} defines the algorithm {algo!r} and cannot be overridden")
+            raise ValueError(
+                f"{key} = {overrides[key]!r} is not allowed for {algo}; use {entry.defining[key]!r} "
+                f"({key!r} defines the algorithm {algo!r})"
+            )
         if key not in fields:
             raise ValueError(
                 f"unknown {algo} config field {key!r}; allowed: {', '.join(sorted(fields - set(entry.defining)))}"
