@@ -280,3 +280,46 @@ def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
             PixelObservations(task, NUM_ENVS, PixelRenderer(task, NUM_ENVS, 16)),
             SHACConfig(observation="pixels", gradient="full", num_envs=NUM_ENVS),
         )
+
+
+def test_state_prediction_adds_its_weighted_mean_squared_error_to_the_actor_gradient():
+    """D.Va's auxiliary loss: the actor's gradient is reverse mode through the decoupled rollout
+    plus ``weight ·`` the gradient of the encoder's mean squared error on the normalised states it
+    saw, and the reported loss is that error (kept backward passes and recomputed chunks alike)."""
+    from dva.rendering import PixelRenderer
+
+    task, weight = make_task("cartpole_swingup"), 0.7
+    config = SHACConfig(
+        observation="pixels",
+        num_envs=NUM_ENVS,
+        horizon=2,
+        image_size=16,
+        actor_hidden=(8,),
+        critic_hidden=(8,),
+        critic_minibatches=2,
+        state_prediction=weight,
+    )
+    env = PixelObservations(task, NUM_ENVS, PixelRenderer(task, NUM_ENVS, 16), config.frame_stack)
+    shac = SHAC(env, config)
+    train = jax.jit(shac.init)(jax.random.PRNGKey(0))
+    noise = jax.random.normal(jax.random.PRNGKey(1), (2, NUM_ENVS, 1))
+    taken = jax.jit(shac.rollout)(train.actor_params, train, noise)[1][-1]
+
+    def mean_squared_error(params):
+        flat_obs = taken["observations"].reshape((-1,) + taken["observations"].shape[2:])
+        predicted = shac.actor.apply(params, flat_obs, predict_state=True)[2]
+        return jnp.mean((predicted - taken["states"].reshape(predicted.shape)) ** 2)
+
+    def reference(params):
+        return shac.rollout(params, train, noise)[0] + weight * mean_squared_error(params)
+
+    expected = jax.jit(jax.grad(reference))(train.actor_params)
+    assert np.abs(flat(expected["params"]["state_head"])).max() > 0
+    error = float(jax.jit(mean_squared_error)(train.actor_params))
+    for chunk in (0, 1):
+        chunked = SHAC(env, dataclasses.replace(config, actor_backward_chunk=chunk))
+        _, aux, grads = jax.jit(chunked.actor_gradient)(train.actor_params, train, noise)
+        np.testing.assert_allclose(flat(grads), flat(expected), rtol=1e-4, atol=1e-6 * np.abs(flat(expected)).max())
+        assert float(aux[4]["state_prediction_loss"]) == pytest.approx(error, rel=1e-5)
+    with pytest.raises(ValueError, match="state_prediction = 0.5 is not allowed"):
+        SHACConfig(observation="state", state_prediction=0.5)

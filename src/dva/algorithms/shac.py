@@ -68,6 +68,12 @@ class SHACConfig:
     for every step instead (no recomputed forward, all h steps' activations in memory; for
     hardware where the recompute costs more than it saves). Chunks of 1 step have the least
     memory (docs/development.md, "CPU speed notes")."""
+    state_prediction: float = 0.0
+    """D.Va only: weight of an auxiliary loss, added to the actor's, that makes the actor's pixel
+    encoder predict the normalised simulator state (the critic's input) through a linear head on
+    its trunk: the mean over steps, envs and state dimensions of the squared error. It trains the
+    encoder on what the frames show without the return's gradient passing through the pixels.
+    0: the paper's loss."""
     use_critic: bool = True
     """False: the paper's value ablation — the window's end bootstraps nothing (V = 0) and no
     critic is trained."""
@@ -95,6 +101,13 @@ class SHACConfig:
             raise ValueError(
                 f"actor_backward_chunk = {chunk!r} is not allowed; use 0 (the kept backward passes) or a divisor of "
                 f"horizon = {self.horizon}"
+            )
+        if self.state_prediction < 0 or (
+            self.state_prediction and (self.observation, self.gradient) != ("pixels", "decoupled")
+        ):
+            raise ValueError(
+                f"state_prediction = {self.state_prediction!r} is not allowed here; use 0, or a positive weight with "
+                "observation='pixels' and gradient='decoupled' (D.Va)"
             )
         if (self.num_envs * self.horizon) % self.critic_minibatches:
             raise ValueError(
@@ -131,7 +144,6 @@ class SHAC:
     """The trainer (an :class:`~dva.algorithms.base.Agent`); see the module docstring. Pixel
     observations need ``env`` to render them."""
 
-    metric_names = ("actor_loss", "actor_grad_norm", "critic_loss")
     prior_cost = (0.0, 0)
 
     def __init__(self, env: PixelObservations, config: SHACConfig) -> None:
@@ -152,6 +164,7 @@ class SHAC:
             pixels=config.observation == "pixels",
             trunk=config.trunk,
             init_log_std=config.init_log_std,
+            state_dim=self.task.obs_dim if config.state_prediction else 0,
         )
         self.critic = Critic(config.critic_hidden)
 
@@ -170,6 +183,11 @@ class SHAC:
         )
 
     @property
+    def metric_names(self) -> tuple[str, ...]:
+        extra = ("state_prediction_loss",) if self.config.state_prediction else ()
+        return ("actor_loss", "actor_grad_norm", "critic_loss", *extra)
+
+    @property
     def env_steps_per_iteration(self) -> int:
         return self.config.num_envs * self.config.horizon
 
@@ -182,7 +200,8 @@ class SHAC:
         """Fresh networks, optimisers and environments."""
         env_key, actor_key, critic_key, key = jax.random.split(key, 4)
         env = self.env.reset(env_key)
-        actor_params = self.actor.init(actor_key, self.observe(env, RunningStats.create(self.task.obs_dim)))
+        observation = self.observe(env, RunningStats.create(self.task.obs_dim))
+        actor_params = self.actor.init(actor_key, observation, predict_state=bool(self.config.state_prediction))
         critic_params = self.critic.init(critic_key, env.obs)
         return TrainState(
             actor_params=actor_params,
@@ -213,6 +232,14 @@ class SHAC:
         mean, log_std = self.actor.apply(actor_params, observation)
         return mean if noise is None else mean + jnp.exp(log_std) * noise
 
+    def actor_outputs(self, actor_params: dict, observation: jax.Array, noise: jax.Array, state: jax.Array):
+        """``(pre-tanh action, squared error of the state prediction summed over its entries)``;
+        the error is 0 without the auxiliary loss."""
+        if not self.config.state_prediction:
+            return self.pre_tanh_action(actor_params, observation, noise), jnp.zeros(())
+        mean, log_std, predicted = self.actor.apply(actor_params, observation, predict_state=True)
+        return mean + jnp.exp(log_std) * noise, jnp.sum((predicted - state) ** 2)
+
     def rollout(self, actor_params: dict, train: TrainState, noise: jax.Array, action_offset: jax.Array | None = None):
         """Roll the policy out for ``len(noise)`` steps; returns the actor loss and its by-products.
 
@@ -236,7 +263,10 @@ class SHAC:
                 observation = jax.lax.stop_gradient(observation)
             critic_obs = jax.lax.stop_gradient(train.obs_stats.normalize(env.obs))
             if cfg.gradient == "decoupled" and cfg.actor_backward_chunk == 0:  # kept for actor_backward
-                pre_tanh, actor_vjp = jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)
+                (pre_tanh, error), vjp = jax.vjp(
+                    lambda p: self.actor_outputs(p, observation, eps, critic_obs), actor_params
+                )
+                actor_vjp = (vjp, error)
             else:
                 pre_tanh, actor_vjp = self.pre_tanh_action(actor_params, observation, eps), None
             pre_tanh = pre_tanh + offset
@@ -289,7 +319,7 @@ class SHAC:
             "mean_reward": reward.mean(),
         }
         # The actor's inputs, pre-tanh actions and (decoupled) backward passes, per step.
-        taken = {"observations": observations, "actions": actions, "actor_vjp": vjps}
+        taken = {"observations": observations, "actions": actions, "actor_vjp": vjps, "states": critic_obs}
         return loss, (env, episode_return, trajectory, visited_obs, stats, taken)
 
     def actor_gradient(self, actor_params: dict, train: TrainState, noise: jax.Array):
@@ -299,7 +329,9 @@ class SHAC:
         action gradient ``∇_{a_t} L``. So the scan differentiates only the physics (with respect
         to action offsets), and the actor — the pixel encoder above all — is differentiated
         afterwards (:meth:`actor_backward`) instead of inside the reverse scan through the physics.
-        Full: plain reverse mode through everything.
+        Full: plain reverse mode through everything. The auxiliary state-prediction loss (decoupled
+        only) joins the actor's gradient in :meth:`actor_backward`; its mean squared error is
+        ``aux[4]["state_prediction_loss"]``.
         """
         cfg = self.config
         if cfg.gradient == "full":
@@ -309,20 +341,27 @@ class SHAC:
         (loss, aux), action_grad = jax.value_and_grad(
             lambda w: self.rollout(actor_params, train, noise, w), has_aux=True
         )(offsets)
-        return loss, aux, self.actor_backward(actor_params, aux[-1], noise, action_grad)
+        grads, squared_error = self.actor_backward(actor_params, aux[-1], noise, action_grad)
+        if cfg.state_prediction:
+            aux[4]["state_prediction_loss"] = squared_error / aux[-1]["states"].size
+        return loss, aux, grads
 
-    def actor_backward(self, actor_params: dict, taken: dict, noise: jax.Array, action_grad: jax.Array) -> dict:
-        """``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` from what the rollout took (``taken``) and the open-loop
-        action gradient ``(h, N, A)``: a scan over chunks of ``actor_backward_chunk`` steps, each
-        recomputing the actor's forward, or over the backward passes the rollout kept (0) — one
-        chunk's (step's) workspace at a time. (Convolution gradients run at full speed inside a
-        loop only as :func:`dva.networks.conv_valid` writes them.)"""
+    def actor_backward(self, actor_params: dict, taken: dict, noise: jax.Array, action_grad: jax.Array):
+        """``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` (plus the state-prediction loss's gradient) from what the
+        rollout took (``taken``) and the open-loop action gradient ``(h, N, A)``: a scan over chunks
+        of ``actor_backward_chunk`` steps, each recomputing the actor's forward, or over the
+        backward passes the rollout kept (0) — one chunk's (step's) workspace at a time.
+        (Convolution gradients run at full speed inside a loop only as
+        :func:`dva.networks.conv_valid` writes them.) Returns the gradient and the prediction's
+        summed squared error."""
         cfg = self.config
+        # The auxiliary loss is the weight times the mean of the squared error over its entries.
+        error_weight = jnp.asarray(cfg.state_prediction / taken["states"].size)
         if cfg.actor_backward_chunk == 0:
 
             def step_gradient(step):
-                vjp, grad = step
-                return vjp(grad)[0]
+                (vjp, error), grad = step
+                return vjp((grad, error_weight))[0], error
 
             steps = (taken["actor_vjp"], action_grad)
         else:
@@ -331,16 +370,20 @@ class SHAC:
                 return x.reshape((-1, cfg.actor_backward_chunk * x.shape[1]) + x.shape[2:])
 
             def step_gradient(chunk):
-                observation, eps, grad = chunk
-                return jax.vjp(lambda p: self.pre_tanh_action(p, observation, eps), actor_params)[1](grad)[0]
+                observation, eps, state, grad = chunk
+                (_, error), vjp = jax.vjp(lambda p: self.actor_outputs(p, observation, eps, state), actor_params)
+                return vjp((grad, error_weight))[0], error
 
-            steps = (chunks(taken["observations"]), chunks(noise), chunks(action_grad))
-        grads, _ = jax.lax.scan(
-            lambda total, step: (jax.tree.map(jnp.add, total, step_gradient(step)), None),
-            jax.tree.map(jnp.zeros_like, actor_params),
-            steps,
+            steps = (chunks(taken["observations"]), chunks(noise), chunks(taken["states"]), chunks(action_grad))
+
+        def accumulate(total, step):
+            grads, error = step_gradient(step)
+            return jax.tree.map(jnp.add, total, (grads, error)), None
+
+        (grads, squared_error), _ = jax.lax.scan(
+            accumulate, (jax.tree.map(jnp.zeros_like, actor_params), jnp.zeros(())), steps
         )
-        return grads
+        return grads, squared_error
 
     # ---- the critic ---------------------------------------------------------------------------
     def critic_update(self, train: TrainState, trajectory: Trajectory, key: jax.Array):

@@ -30,7 +30,9 @@ class Actor(nn.Module):
     """Gaussian policy head: mean from an MLP, state-independent log-std initialised to −1.
 
     With ``pixels=True`` the input goes through :class:`PixelEncoder` and a Linear → LayerNorm →
-    Tanh trunk of width ``trunk`` first. Returns ``(mean, log_std)`` of the pre-tanh action.
+    Tanh trunk of width ``trunk`` first. Returns ``(mean, log_std)`` of the pre-tanh action; with
+    ``state_dim > 0`` also a linear prediction of the (normalised) simulator state from the trunk's
+    features, for the auxiliary state-prediction loss (``predict_state=True``; init with it).
     """
 
     action_dim: int
@@ -38,16 +40,20 @@ class Actor(nn.Module):
     pixels: bool
     trunk: int = 64
     init_log_std: float = -1.0
+    state_dim: int = 0
 
     @nn.compact
-    def __call__(self, observation: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def __call__(self, observation: jax.Array, predict_state: bool = False):
         x = observation
         if self.pixels:
             x = PixelEncoder()(x)
             x = jnp.tanh(nn.LayerNorm()(nn.Dense(self.trunk)(x)))
         mean = MLP(self.hidden, self.action_dim)(x)
         log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.action_dim,))
-        return mean, jnp.broadcast_to(log_std, mean.shape)
+        log_std = jnp.broadcast_to(log_std, mean.shape)
+        if predict_state:
+            return mean, log_std, nn.Dense(self.state_dim, name="state_head")(x)
+        return mean, log_std
 
 
 class Critic(nn.Module):
