@@ -87,14 +87,18 @@ class PixelObservations:
     def _repeat(self, env: EnvState, action: jax.Array) -> EnvState:
         """The remaining control steps of one repeated action: rewards summed and the end flags
         and final observation kept from the step where the episode ended."""
-        reward, terminated, truncated, final_obs = env.reward, env.terminated, env.truncated, env.final_obs
+        reward, terminated, truncated = env.reward, env.terminated, env.truncated
+        final_obs, final_qpos = env.final_obs, env.final_qpos
         for _ in range(self.action_repeat - 1):
             env = self.task.step(env, action)
             running = ~(terminated | truncated)
             reward = reward + jnp.where(running, env.reward, 0.0)
             final_obs = jnp.where(running[:, None], env.final_obs, final_obs)
+            final_qpos = jnp.where(running[:, None], env.final_qpos, final_qpos)
             terminated, truncated = terminated | (running & env.terminated), truncated | (running & env.truncated)
-        return env.replace(reward=reward, terminated=terminated, truncated=truncated, final_obs=final_obs)
+        return env.replace(
+            reward=reward, terminated=terminated, truncated=truncated, final_obs=final_obs, final_qpos=final_qpos
+        )
 
     @staticmethod
     def observe(env: EnvState) -> Observation:

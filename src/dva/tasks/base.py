@@ -44,6 +44,7 @@ class EnvState(struct.PyTreeNode):
     data: mjx.Data  # physics state
     obs: jax.Array  # (N, obs_dim) state observation after any auto-reset
     final_obs: jax.Array  # (N, obs_dim) observation reached by the last step, before auto-reset
+    final_qpos: jax.Array  # (N, nq) joint positions reached by the last step, before auto-reset (to render)
     reward: jax.Array  # (N,) reward of the last step
     terminated: jax.Array  # (N,) bool, the last step ended the episode by failure
     truncated: jax.Array  # (N,) bool, the last step hit the episode length
@@ -167,6 +168,7 @@ class Task(abc.ABC):
             data=data,
             obs=obs,
             final_obs=obs,
+            final_qpos=data.qpos,
             reward=jnp.zeros((num_envs,), obs.dtype),
             terminated=zeros,
             truncated=zeros,
@@ -199,11 +201,13 @@ class Task(abc.ABC):
 
         env_keys, reset_keys = jax.vmap(jax.random.split, out_axes=1)(state.key)
         reset_data, reset_obs = jax.vmap(self._reset_one)(reset_keys)
+        final_qpos = data.qpos
         data = jax.tree.map(lambda r, d: _where_env(done, r, d), reset_data, data)
         return state.replace(  # a wrapper's fields (pixels) pass through; the wrapper updates them
             data=data,
             obs=_where_env(done, reset_obs, obs),
             final_obs=jnp.where(finite[:, None], obs, 0.0),
+            final_qpos=final_qpos,
             reward=jnp.where(finite, reward, 0.0),
             terminated=terminated,
             truncated=truncated,

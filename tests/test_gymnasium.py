@@ -1,0 +1,139 @@
+"""The Gymnasium environments: registration, spaces, seeding, same-step autoreset with the final
+observation (state and frame stack), termination against truncation, and bad input."""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+import pytest
+
+import dva  # noqa: F401  (registers dva/<task>-v0)
+from dva.gymnasium_envs import TASK_NAMES, DvaEnv, DvaVectorEnv, env_id
+from dva.tasks import TASKS
+
+NUM_ENVS = 2
+
+
+@pytest.fixture(scope="module")
+def state_env():
+    return gymnasium.make_vec("dva/cartpole_swingup-v0", num_envs=NUM_ENVS)
+
+
+@pytest.fixture(scope="module")
+def pixel_env():
+    return gymnasium.make_vec(
+        "dva/cartpole_swingup-v0", num_envs=NUM_ENVS, obs_type="both", image_size=16, frame_stack=2
+    )
+
+
+def test_every_task_is_registered_with_a_vector_entry_point():
+    assert TASK_NAMES == tuple(TASKS)
+    for task in TASKS:
+        spec = gymnasium.spec(env_id(task))
+        assert spec.vector_entry_point == "dva.gymnasium_envs:DvaVectorEnv"
+        assert spec.kwargs == {"task": task}
+
+
+def test_spaces_contain_what_reset_and_step_return(state_env, pixel_env):
+    assert isinstance(state_env, DvaVectorEnv)
+    assert state_env.single_observation_space.shape == (5,)
+    assert state_env.single_action_space == gymnasium.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    pixels = pixel_env.single_observation_space["pixels"]
+    assert (pixels.shape, pixels.dtype, pixels.low.min(), pixels.high.max()) == ((16, 16, 6), np.uint8, 0, 255)
+    for env in (state_env, pixel_env):
+        obs, info = env.reset(seed=0)
+        assert env.observation_space.contains(obs) and info == {}
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert env.observation_space.contains(obs)
+        assert reward.shape == terminated.shape == truncated.shape == (NUM_ENVS,)
+        assert reward.dtype == np.float32 and terminated.dtype == truncated.dtype == np.bool_
+
+
+def test_a_seed_makes_the_episodes_reproducible(state_env):
+    actions = np.random.default_rng(0).uniform(-1, 1, (20, NUM_ENVS, 1)).astype(np.float32)
+
+    def run(seed):
+        observations = [state_env.reset(seed=seed)[0]]
+        observations += [state_env.step(action)[0] for action in actions]
+        return np.stack(observations)
+
+    first = run(3)
+    np.testing.assert_array_equal(run(3), first)
+    assert np.abs(run(4) - first).max() > 1e-3
+    assert np.abs(first[0, 0] - first[0, 1]).max() > 0  # the sub-environments start apart
+
+
+def test_running_off_the_rail_terminates_and_resets_in_the_same_step(state_env):
+    """Pushing right drives the cart past x = 2.5 (termination, not truncation); that step returns
+    the next episode's first observation and the one it reached in info["final_obs"]."""
+    obs, _ = state_env.reset(seed=1)
+    for _ in range(239):
+        previous = obs
+        obs, reward, terminated, truncated, info = state_env.step(np.ones((NUM_ENVS, 1), np.float32))
+        if terminated.any():
+            break
+    assert terminated.any() and not truncated.any()
+    np.testing.assert_array_equal(info["_final_obs"], terminated)
+    ended = np.flatnonzero(terminated)
+    final = info["final_obs"][ended]
+    assert np.all(final[:, 0] >= 2.5) and np.all(np.abs(final[:, 0] - previous[ended, 0]) < 0.2)
+    assert np.all(np.abs(obs[ended, 0]) < 0.5)  # the cart is back near the centre
+    assert np.all(reward[ended] != 0)
+
+
+def test_the_episode_length_truncates_every_sub_environment(state_env):
+    state_env.reset(seed=2)
+    zero = np.zeros((NUM_ENVS, 1), np.float32)
+    for _ in range(239):
+        _, _, terminated, truncated, info = state_env.step(zero)
+        assert not (terminated.any() or truncated.any()) and info == {}
+    _, _, terminated, truncated, info = state_env.step(zero)
+    assert truncated.all() and not terminated.any() and info["_final_obs"].all()
+
+
+def test_the_final_frame_stack_continues_the_previous_one(pixel_env):
+    """At an episode's end the returned stack restarts as one frame tiled; the final one is the
+    previous stack shifted by one frame plus a frame of the pose the step reached."""
+    obs, _ = pixel_env.reset(seed=1)
+    for _ in range(239):
+        previous = obs
+        obs, _, terminated, _, info = pixel_env.step(np.ones((NUM_ENVS, 1), np.float32))
+        if terminated.any():
+            break
+    env = int(np.flatnonzero(terminated)[0])
+    final = info["final_obs"]["pixels"][env]
+    np.testing.assert_array_equal(final[..., :3], previous["pixels"][env][..., 3:])
+    restarted = obs["pixels"][env]
+    np.testing.assert_array_equal(restarted[..., :3], restarted[..., 3:])
+    assert np.abs(final[..., 3:].astype(int) - restarted[..., 3:].astype(int)).max() > 0
+    assert info["final_obs"]["state"][env, 0] >= 2.5
+
+
+def test_one_environment_returns_the_final_observation_and_renders():
+    env = gymnasium.make("dva/cartpole_swingup-v0", render_mode="rgb_array", render_size=32)
+    assert isinstance(env.unwrapped, DvaEnv)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (5,) and env.observation_space.contains(obs)
+    for _ in range(239):
+        obs, reward, terminated, truncated, _ = env.step(np.ones(1, np.float32))
+        if terminated:
+            break
+    assert terminated and not truncated and obs[0] >= 2.5 and isinstance(reward, float)
+    frame = env.render()
+    assert frame.shape == (32, 32, 3) and frame.dtype == np.uint8 and frame.std() > 0
+
+
+def test_bad_arguments_name_the_value_and_what_is_allowed(state_env):
+    with pytest.raises(ValueError, match="obs_type 'rgb' is not allowed; use one of state, pixels, both"):
+        DvaVectorEnv("hopper", obs_type="rgb")
+    with pytest.raises(ValueError, match="array_type 'torch' is not allowed"):
+        DvaVectorEnv("hopper", array_type="torch")
+    with pytest.raises(ValueError, match="unknown task 'walker'"):
+        DvaVectorEnv("walker")
+    state_env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"actions have shape \(3, 1\); this env needs \(2, 1\)"):
+        state_env.step(np.zeros((3, 1)))
+    with pytest.raises(ValueError, match="non-finite"):
+        state_env.step(np.full((NUM_ENVS, 1), np.nan))
+    with pytest.raises(ValueError, match="options .* are not supported"):
+        state_env.reset(options={"reset_mask": np.ones(NUM_ENVS, bool)})
