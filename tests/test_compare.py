@@ -5,7 +5,6 @@ that writes a run's files, so no compilation)."""
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import os
 import sys
@@ -16,7 +15,7 @@ import pytest
 
 import dva.analysis.compare as compare_module
 import dva.training
-from dva.analysis.compare import Job, cpu_groups, figure_settings, launch_pinned, run_parallel
+from dva.analysis.compare import Job, cpu_groups, figure_settings, grid_settings, launch_pinned, run_parallel
 from dva.cli import main
 
 
@@ -157,7 +156,8 @@ def test_cpu_groups_are_disjoint_and_equal():
 
 
 def test_parallel_runs_never_share_cpus_and_all_run_despite_a_failure():
-    jobs = [Job("fig4", "cartpole_swingup", "x", seed, 1.0, "cpu", f"run{seed}") for seed in range(5)]
+    setting = figure_settings("fig4", ["cartpole_swingup"])[0]
+    jobs = [Job(setting, seed, 1.0, "cpu", f"run{seed}") for seed in range(5)]
     spans: list[tuple[int, tuple[int, ...], float, float]] = []
     lock = threading.Lock()
 
@@ -182,11 +182,12 @@ def test_parallel_runs_never_share_cpus_and_all_run_despite_a_failure():
 
 def test_a_job_survives_its_trip_to_a_child_process():
     setting = figure_settings("ablation-value", ["cartpole_swingup"])[1]
-    job = Job("ablation-value", setting.task, setting.slug, 1, 2.0, "cpu", "out/runs/x_s1")
-    assert Job(**json.loads(json.dumps(dataclasses.asdict(job)))).setting() == setting
-    setting = figure_settings("ablation-frames", ["hopper"], frames=[8])[0]  # outside the default 1–6
-    job = Job("ablation-frames", setting.task, setting.slug, 0, 2.0, "cpu", "out/runs/y_s0", (8,))
-    assert Job(**json.loads(json.dumps(dataclasses.asdict(job)))).setting() == setting
+    job = Job(setting, 1, 2.0, "cpu", "out/runs/x_s1")
+    assert Job.from_json(job.to_json()) == job
+    setting = grid_settings("dva", ["hopper"], ["actor_hidden=[64,32]", "actor_lr=1e-3"])[0]
+    job = Job(setting, 0, 2.0, "cpu", "out/runs/y_s0")
+    assert Job.from_json(job.to_json()) == job  # the tuple-valued override comes back a tuple
+    assert dict(job.setting.overrides) == {"actor_hidden": (64, 32), "actor_lr": 0.001}
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU pinning is Linux-only")
@@ -198,7 +199,8 @@ def test_launch_pinned_child_runs_on_its_cpus_and_its_failure_names_the_log(tmp_
     child.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(child))
     cpu = sorted(os.sched_getaffinity(0))[-1]
-    job = Job("ablation-value", "cartpole_swingup", "d_va", 0, 1.0, "cpu", str(tmp_path / "runs" / "x_s0"))
+    setting = figure_settings("ablation-value", ["cartpole_swingup"])[0]
+    job = Job(setting, 0, 1.0, "cpu", str(tmp_path / "runs" / "x_s0"))
     monkeypatch.setenv("EXIT_CODE", "0")
     assert "ran on CPUs" in launch_pinned(job, (cpu,))
     assert (tmp_path / "runs" / "x_s0.log").read_text().split()[-1] == str(cpu)
@@ -241,3 +243,36 @@ def test_compare_with_workers_runs_every_job_once(fake, tmp_path, monkeypatch, c
     assert summary["D.Va on cartpole_swingup"]["seeds"] == "2"
     main(args)  # all complete: nothing launched again
     assert len(fake.calls) == 4 and "skipped (complete)" in capsys.readouterr().out
+
+
+def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, capsys):
+    """Two runs of a grid as Ray tasks on the cluster Ray starts here: one interrupted before (a
+    checkpoint, no completion mark) resumes, the other trains; called again, both are skipped."""
+    import ray
+
+    from dva.analysis.compare import sweep
+    from dva.training import read_progress, train
+
+    small = ["num_envs=4", "horizon=8", "critic_minibatches=2", "actor_hidden=[16]", "critic_hidden=[16]"]
+    grid = ["actor_lr=1e-3,2e-3", *small]
+    settings = grid_settings("shac", ["cartpole_swingup"], grid)
+    assert len(settings) == 2
+    interrupted = tmp_path / "runs" / f"{settings[0].slug}_s0"
+    train(
+        "cartpole_swingup", "shac", iterations=1, run_dir=interrupted, checkpoint_every=1, **dict(settings[0].overrides)
+    )
+    try:
+        sweep("shac", ["cartpole_swingup"], grid, [0], 0.5, tmp_path, backend="ray")
+        first = capsys.readouterr().out
+        sweep("shac", ["cartpole_swingup"], grid, [0], 0.5, tmp_path, backend="ray")
+        second = capsys.readouterr().out
+    finally:
+        ray.shutdown()
+    assert "actor_lr=0.001" in first and ": resumed" in first and ": trained" in first, first
+    assert second.count("skipped (complete)") == 2, second
+    for setting in settings:  # a budget of half a minute can be all compilation: the untrained row at least
+        assert (tmp_path / "runs" / f"{setting.slug}_s0" / "complete.json").exists()
+    assert [row["iteration"] for row in read_progress(interrupted)][:2] == ["0", "1"]  # kept what it had
+    assert (tmp_path / "summary.md").exists()
+    with pytest.raises(ValueError, match="grid entry 'lr=1' is not allowed; use FIELD=V1,V2 with a field of shac"):
+        grid_settings("shac", ["cartpole_swingup"], ["lr=1"])

@@ -47,7 +47,7 @@ def test_cli_page_lists_every_option():
     from dva import cli
 
     page = (ROOT / "docs" / "cli.md").read_text()
-    commands = [["train"], ["eval"], ["plot"], ["compare"], *[["analyze", name] for name in cli.ANALYSES]]
+    commands = [["train"], ["eval"], ["plot"], ["compare"], ["sweep"], *[["analyze", name] for name in cli.ANALYSES]]
     missing = []
     for command in commands:
         help_text = subprocess.run(

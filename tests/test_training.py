@@ -264,3 +264,29 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
         trunk=16,
     )
     assert float(rows(in_call)[0]["wall_time"]) == pytest.approx(float(teacher_end["wall_time"]))
+
+
+def test_track_logs_config_curve_and_video_to_wandb_offline(tmp_path, monkeypatch):
+    """``--track``: the W&B run (offline) holds the run's config, the last logged numbers at their
+    env-step count and the policy video; a resumed run reopens the same W&B run."""
+    import imageio
+
+    from dva.tracking import WandbTracker
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    run_dir = tmp_path / "run"
+    tracker = WandbTracker("dva-test")
+    train("cartpole_swingup", "shac", iterations=2, run_dir=run_dir, eval_every=2, tracker=tracker, **SMALL)
+    last, run = rows(run_dir)[-1], tracker.run
+    assert run.config["task"] == "cartpole_swingup" and run.config["algo"] == "shac"
+    assert run.summary["eval_return"] == pytest.approx(float(last["eval_return"]))
+    assert run.summary["env_steps"] == int(last["env_steps"]) == 64
+    imageio.mimwrite(run_dir / "policy.mp4", np.zeros((4, 16, 16, 3), np.uint8), fps=10)
+    tracker.log_video(run_dir / "policy.mp4")
+    run_id = run.id
+    tracker.finish()
+    assert list((run_dir / "wandb").glob(f"offline-run-*-{run_id}/files/media/videos/*.mp4"))
+    train("cartpole_swingup", iterations=1, run_dir=run_dir, resume=True, eval_every=None, tracker=tracker)
+    assert tracker.run.id == run_id
+    tracker.finish()

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Optional, Union
 import tyro
 
 from dva.algorithms import ALGORITHMS, AlgoName
-from dva.analysis.compare import FigureName
+from dva.analysis.compare import Backend, FigureName
 from dva.configs import PresetName
 from dva.tasks import TASKS, check_physics, check_task_name
 from dva.training import TrainingDiverged
@@ -138,6 +138,14 @@ class TrainOptions:
     checkpoint_minutes: float = 2.0
     physics: str | None = None
     """Contact model: penalty | mujoco (default: the task's; see `dva tasks`)."""
+    devices: int | None = None
+    """Split the environments over this many devices (default: all JAX sees, for dva, shac,
+    dpg-state and shac-pixels; the others run on one)."""
+    track: bool = False
+    """Also log to Weights & Biases: config, curves and the policy video (needs the wandb extra;
+    WANDB_MODE=offline keeps it on disk)."""
+    wandb_project: str | None = None
+    """The W&B project (default: $WANDB_PROJECT, else dva)."""
 
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""
@@ -157,6 +165,11 @@ class TrainOptions:
             if self.resume:
                 raise ValueError("--resume needs --run-dir: the run to continue")
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+        tracker = None
+        if self.track:
+            from dva.tracking import WandbTracker
+
+            tracker = WandbTracker(self.wandb_project)
         run_dir = train(
             self.task,
             self.algo,
@@ -171,12 +184,18 @@ class TrainOptions:
             checkpoint_every=self.checkpoint_every,
             checkpoint_minutes=self.checkpoint_minutes,
             physics=self.physics,
+            devices=self.devices,
+            tracker=tracker,
             **self.config_overrides(),
         )
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()
             EvalCommand(run_dir, video=run_dir / "policy.mp4", video_size=self.video_size).run()
+            if tracker is not None:
+                tracker.log_video(run_dir / "policy.mp4")
+        if tracker is not None:
+            tracker.finish()
 
 
 def _group_help(group: str) -> str:
@@ -263,8 +282,36 @@ class PlotCommand:
         print(markdown + f"wrote {path} and summary.md")
 
 
-@dataclasses.dataclass
-class CompareCommand:
+@dataclasses.dataclass(kw_only=True)
+class ManyRuns:
+    """What compare and sweep share: seeds, budget, where the runs go and what runs them."""
+
+    seeds: list[int] = dataclasses.field(default_factory=lambda: [0, 1])
+    minutes: float = 30.0
+    """Wall-clock budget of every run (compilation included)."""
+    preset: PresetName = "cpu"
+    threshold: float | None = None
+    """Report when each setting first reached this eval return (e.g. 2× a random policy's)."""
+    out: Path = Path("comparisons")
+    workers: int = 1
+    """local backend: runs at once, each in its own process pinned to an equal share of the CPUs
+    (e.g. 2 on a 2-core machine: one core per run). CPU only: on a GPU they would share the one
+    device."""
+    backend: Backend = "local"
+    """local (this machine's processes) | ray (Ray tasks on the cluster at $RAY_ADDRESS, or on one
+    Ray starts here; needs the ray extra, and an --out every node sees)."""
+    cpus_per_run: float = 1.0
+    """ray backend: the CPUs Ray reserves for each run."""
+    gpus_per_run: float = 0.0
+    """ray backend: the GPUs Ray reserves for each run (fractions share one)."""
+
+    def run_options(self) -> dict:
+        fields = ("seeds", "minutes", "preset", "threshold", "workers", "backend", "cpus_per_run", "gpus_per_run")
+        return {name: getattr(self, name) for name in fields}
+
+
+@dataclasses.dataclass(kw_only=True)
+class CompareCommand(ManyRuns):
     """One of the paper's comparisons: every setting × task × seed for the same wall-clock budget,
     then return vs wall-clock and vs env steps (PNG) and final return / time to ``--threshold``
     (CSV + markdown) in OUT. Finished runs are skipped and interrupted ones resumed, so re-running
@@ -275,17 +322,6 @@ class CompareCommand:
     (teacher's time included); fig7: D.Va vs visual SHAC; fig13: SHAC vs DPG on the state;
     ablation-value: D.Va without its critic; ablation-frames: D.Va with 1–6 stacked frames."""
     tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
-    seeds: list[int] = dataclasses.field(default_factory=lambda: [0, 1])
-    minutes: float = 30.0
-    """Wall-clock budget of every run (compilation included)."""
-    preset: PresetName = "cpu"
-    threshold: float | None = None
-    """Report when each setting first reached this eval return (e.g. 2× a random policy's)."""
-    out: Path = Path("comparisons")
-    workers: int = 1
-    """Runs at once, each in its own process pinned to an equal share of the CPUs (e.g. 2 on a
-    2-core machine: one core per run, as the RESULTS comparisons ran). CPU only: on a GPU they
-    would share the one device."""
     frames: list[int] | None = None
     """ablation-frames only: the stack sizes to compare (default 1 2 3 4 5 6)."""
 
@@ -293,17 +329,27 @@ class CompareCommand:
         from dva.analysis.compare import compare
 
         out = self.out / self.figure
-        paths, markdown = compare(
-            self.figure,
-            self.tasks,
-            self.seeds,
-            self.minutes,
-            out,
-            self.preset,
-            self.threshold,
-            self.workers,
-            self.frames,
-        )
+        paths, markdown = compare(self.figure, self.tasks, out=out, frames=self.frames, **self.run_options())
+        print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
+
+
+@dataclasses.dataclass(kw_only=True)
+class SweepCommand(ManyRuns):
+    """A grid of one algorithm's hyperparameters: every combination of the --grid values × task ×
+    seed for the same wall-clock budget, by the rules of compare (finished runs skipped,
+    interrupted ones resumed), with its curves and table in OUT."""
+
+    algo: AlgoName = "dva"
+    tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
+    grid: list[str] = dataclasses.field(default_factory=list)
+    """FIELD=V1,V2 per config field of the algorithm (e.g. actor_lr=1e-3,2e-3 horizon=16,32);
+    values are read as JSON where they parse."""
+    out: Path = Path("sweeps")
+
+    def run(self) -> None:
+        from dva.analysis.compare import sweep
+
+        paths, markdown = sweep(self.algo, self.tasks, self.grid, out=self.out, **self.run_options())
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 
@@ -453,6 +499,7 @@ COMMANDS = {
     "eval": EvalCommand,
     "plot": PlotCommand,
     "compare": CompareCommand,
+    "sweep": SweepCommand,
     "analyze": AnalyzeCommand,
 }
 

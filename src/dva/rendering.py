@@ -59,7 +59,8 @@ def scene_poses(task: Task, qpos: jax.Array) -> mjx.Data:
 class PixelRenderer:
     """Renders ``num_envs`` copies of a task from its pixel camera as uint8 RGB (and depth).
 
-    The Warp render context has a fixed batch size, so one renderer serves one ``num_envs``.
+    The Warp render context has a fixed batch size, so one renderer serves one ``num_envs``, on
+    one ``device`` (JAX's default unless given; a run split over devices has one per device).
     Keep the renderer object alive while jitted functions that call it are in use; renders
     already queued when it is dropped still finish (see ``__del__``).
     """
@@ -74,6 +75,7 @@ class PixelRenderer:
         height: int | None = None,
         depth: bool = False,
         samples_per_pixel: int = 1,
+        device: jax.Device | None = None,
     ) -> None:
         height = width if height is None else height
         check_image_size(width, height)
@@ -81,6 +83,16 @@ class PixelRenderer:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
         require_warp()
+        if device is not None:  # build the model, template and render context on that device
+            import warp
+
+            warp_device = f"cuda:{device.local_hardware_id}" if device.platform == "gpu" else "cpu"
+            with jax.default_device(device), warp.ScopedDevice(warp_device):
+                self._build(task, num_envs, width, height, depth, samples_per_pixel)
+        else:
+            self._build(task, num_envs, width, height, depth, samples_per_pixel)
+
+    def _build(self, task: Task, num_envs: int, width: int, height: int, depth: bool, samples_per_pixel: int) -> None:
         # A copy whose solver may iterate: only the template's one forward pass below uses it, and
         # with the task's single iteration Warp prints an overflow warning per contact-rich model.
         mjm = copy.copy(task.mj_model)

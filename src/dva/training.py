@@ -18,12 +18,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
+from jax.sharding import Mesh
 from tqdm import tqdm
 
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
 from dva.algorithms.base import Agent, RecurrentAgent
 from dva.evaluation import evaluate_policy
+from dva.sharding import device_mesh, place
 from dva.tasks import make_task
+from dva.tracking import WandbTracker
 
 
 class TrainingDiverged(RuntimeError):
@@ -53,19 +56,30 @@ def read_progress(run_dir) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def build(spec: RunSpec) -> Agent:
+def build(spec: RunSpec, mesh: Mesh | None = None) -> Agent:
     """The agent of a run (its renderer, which must stay alive, lives in ``agent.env``); one per
-    task, algorithm, config and physics in a process (see :func:`_agent`)."""
-    return _agent(spec.task, spec.algo, config_from_dict(spec.algo, spec.config), spec.physics)
+    task, algorithm, config, physics and device mesh in a process (see :func:`_agent`)."""
+    return _agent(spec.task, spec.algo, config_from_dict(spec.algo, spec.config), spec.physics, mesh)
 
 
 @functools.lru_cache(maxsize=4)
-def _agent(task: str, algo: str, config, physics: str | None) -> Agent:
+def _agent(task: str, algo: str, config, physics: str | None, mesh: Mesh | None) -> Agent:
     """Agents are stateless, so the runs of one process that share a configuration — a resume, the
     next seed of ``dva compare``, ``dva eval`` after ``dva train`` — share one agent, its renderer and,
     through :func:`compiled`, its traced and compiled functions (tracing the reverse pass through
     MJX alone takes tens of seconds on a CPU). The seed is not part of the config."""
-    return build_agent(task, algo, config, physics)
+    return build_agent(task, algo, config, physics, mesh)
+
+
+def run_mesh(spec: RunSpec, devices: int | None) -> Mesh | None:
+    """The devices a run's environments split over (None: one device). ``devices`` None means
+    every device JAX sees for an agent that splits, one for the others."""
+    if not getattr(check_algo(spec.algo).make_agent, "batch_fields", ()):
+        if devices not in (None, 1):
+            raise ValueError(f"devices = {devices!r} is not allowed for {spec.algo}: it runs on one device; use 1")
+        return None
+    mesh = device_mesh(devices, spec.config["num_envs"])
+    return mesh if mesh.size > 1 else None
 
 
 class Compiled(NamedTuple):
@@ -163,9 +177,10 @@ def save(manager: ocp.CheckpointManager, state) -> None:
     manager.save(int(state.iteration), args=ocp.args.StandardSave(_saved_leaves(state)))
 
 
-def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int):
+def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int, placement=None):
     """The latest checkpoint, shaped like the agent's initial state (from ``jax.eval_shape``: no
-    need to run the initialisation) and committed like it; a clear error when it cannot be read."""
+    need to run the initialisation) and committed like it (or placed by ``placement``); a clear
+    error when it cannot be read."""
     like = jax.eval_shape(compiled(agent).init, jax.random.PRNGKey(seed))
     step = manager.latest_step()
     try:
@@ -177,7 +192,7 @@ def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int):
         saved.get(jax.tree_util.keystr(path), jnp.zeros(leaf.shape, leaf.dtype))  # zero-size leaves
         for path, leaf in paths_and_leaves
     ]
-    return committed(jax.tree_util.tree_unflatten(treedef, leaves))
+    return (placement or committed)(jax.tree_util.tree_unflatten(treedef, leaves))
 
 
 def csv_fields(agent: Agent) -> list[str]:
@@ -200,6 +215,8 @@ def train(
     checkpoint_every: int | None = None,
     checkpoint_minutes: float = 2.0,
     physics: str | None = None,
+    devices: int | None = None,
+    tracker: WandbTracker | None = None,
     **config_overrides,
 ) -> Path:
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
@@ -214,7 +231,9 @@ def train(
     time-to-threshold comparison needs) and at the end (never when both are None). Checkpoints every
     ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
-    the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint.
+    the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint. ``devices``:
+    how many devices the environments split over (:mod:`dva.sharding`; None: all JAX sees, for
+    the algorithms that split). ``tracker``: also log to Weights & Biases (the caller finishes it).
     """
     start = time.perf_counter()
     run_dir = Path(run_dir)
@@ -234,16 +253,20 @@ def train(
         spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
         run_dir.mkdir(parents=True, exist_ok=True)
         spec_path.write_text(json.dumps(spec.__dict__, indent=2))
-    agent = build(spec)
+    mesh = run_mesh(spec, devices)
+    agent = build(spec, mesh)
+    placement = committed if mesh is None else functools.partial(place, mesh=mesh, batch_fields=agent.batch_fields)
     total = iterations if iterations is not None else (None if minutes is not None else agent.default_iterations)
 
     manager = checkpoint_manager(run_dir)
-    log = ProgressLog(run_dir, csv_fields(agent))
+    if tracker is not None:
+        tracker.start(run_dir, spec.__dict__)
+    log = ProgressLog(run_dir, csv_fields(agent), tracker)
     if resume and manager.latest_step() is not None:
-        state = restore(manager, agent, spec.seed)
+        state = restore(manager, agent, spec.seed, placement)
         log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
     else:
-        state = committed(compiled(agent).init(jax.random.PRNGKey(spec.seed)))
+        state = placement(compiled(agent).init(jax.random.PRNGKey(spec.seed)))
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
     # (DAgger's teacher), so that comparisons count it.
     offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
@@ -350,10 +373,10 @@ def train(
 class ProgressLog:
     """``progress.csv`` (appended row by row, rewritten atomically when edited) and TensorBoard."""
 
-    def __init__(self, run_dir: Path, fields: list[str]) -> None:
+    def __init__(self, run_dir: Path, fields: list[str], tracker: WandbTracker | None = None) -> None:
         from tensorboardX import SummaryWriter
 
-        self.path, self.fields = run_dir / "progress.csv", fields
+        self.path, self.fields, self.tracker = run_dir / "progress.csv", fields, tracker
         self.rows: list[dict] = []
         if self.path.exists():
             with self.path.open() as f:
@@ -372,12 +395,16 @@ class ProgressLog:
         for key, value in row.items():
             if key != "iteration" and value != "" and np.isfinite(float(value)):
                 self.writer.add_scalar(key, float(value), int(row["env_steps"]))
+        if self.tracker is not None:
+            self.tracker.log(row, int(row["env_steps"]))
 
     def set_last(self, key: str, value: float) -> None:
         """Fill in a field of the last row."""
         self.rows[-1][key] = value
         self._rewrite()
         self.writer.add_scalar(key, value, int(self.rows[-1]["env_steps"]))
+        if self.tracker is not None:
+            self.tracker.log({key: value}, int(self.rows[-1]["env_steps"]))
 
     def truncate(self, iteration: int) -> None:
         """Forget the rows logged after ``iteration``."""

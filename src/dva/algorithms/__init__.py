@@ -187,25 +187,30 @@ def config_from_dict(algo: str, values: dict) -> Any:
     return config_type(**values)
 
 
-def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int) -> Renderer | None:
-    """A renderer of ``kind`` for ``num_envs`` envs of ``task`` at ``image_size``² pixels."""
+def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int, mesh=None) -> Renderer | None:
+    """A renderer of ``kind`` for ``num_envs`` envs of ``task`` at ``image_size``² pixels; with a
+    device ``mesh``, Warp's renders each device's share of the envs on that device."""
     if kind is None:
         return None
     if kind == "warp":
         from dva.rendering import PixelRenderer
 
+        if mesh is not None and mesh.size > 1:
+            from dva.sharding import SplitRenderer
+
+            return SplitRenderer(lambda n, device: PixelRenderer(task, n, image_size, device=device), num_envs, mesh)
         return PixelRenderer(task, num_envs, image_size)
     from dva.soft_rendering import SoftRenderer
 
     return SoftRenderer(task, num_envs, image_size)
 
 
-def build_agent(task_name: str, algo: str, config: Any, physics: str | None = None) -> Agent:
+def build_agent(task_name: str, algo: str, config: Any, physics: str | None = None, mesh=None) -> Agent:
     """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
-    as long as the agent) and the agent."""
+    as long as the agent) and the agent; ``mesh``: the devices its environments split over."""
     entry = check_algo(algo)
     task = make_task(task_name, physics)
-    renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size)
+    renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size, mesh)
     action_repeat = getattr(config, "action_repeat", 1)  # configs without one act every control step
     env = PixelObservations(task, config.num_envs, renderer, config.frame_stack, action_repeat)
     return entry.make_agent(env, config)

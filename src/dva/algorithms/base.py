@@ -27,6 +27,9 @@ class Agent(Protocol[State]):
     config: Any  # a frozen dataclass, saved in run.json
     metric_names: tuple[str, ...]
     prior_cost: tuple[float, int]  # (seconds, env steps) spent before it started (DAgger's teacher)
+    # The state's fields that hold the environment batch (leading num_envs axis), which a run on
+    # several devices splits over them (dva.sharding); () if the agent does not split.
+    batch_fields: tuple[str, ...]
 
     @property
     def env_steps_per_iteration(self) -> int:

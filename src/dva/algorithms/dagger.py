@@ -83,6 +83,7 @@ class DAgger:
     """
 
     metric_names = ("bc_loss", "fresh_bc_loss", "fresh_bc_loss_average", "teacher_fraction")
+    batch_fields = ()  # one device: its replay is not split
 
     def __init__(
         self,

@@ -175,6 +175,7 @@ class DreamerV3:
     """The DreamerV3 agent (an :class:`~dva.algorithms.base.Agent` and
     :class:`~dva.algorithms.base.RecurrentAgent`); see the module docstring."""
 
+    batch_fields = ()  # one device: its replay is not split
     metric_names = (
         "model_loss",
         "image_loss",

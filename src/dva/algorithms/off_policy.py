@@ -105,6 +105,8 @@ class OffPolicyAgent(abc.ABC):
             config.num_envs, config.replay_size, config.batch_size, config.frame_stack, config.n_step, config.gamma
         )
 
+    batch_fields = ()  # one device: the replay is not split
+
     @property
     def metric_names(self) -> tuple[str, ...]:
         return (*self.loss_names, "exploration")

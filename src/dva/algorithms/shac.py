@@ -145,6 +145,7 @@ class SHAC:
     observations need ``env`` to render them."""
 
     prior_cost = (0.0, 0)
+    batch_fields = ("env", "episode_return")
 
     def __init__(self, env: PixelObservations, config: SHACConfig) -> None:
         if env.num_envs != config.num_envs:

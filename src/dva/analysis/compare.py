@@ -10,7 +10,11 @@ it lacks, so a comparison survives a crash and grows with more seeds or minutes.
 With ``workers`` > 1 the runs go to that many child processes at once, each pinned to its own
 equal share of the CPUs (``python -m dva.analysis.compare`` runs one), so that every run of a
 wall-clock comparison gets the same compute however many run beside it; each child's output goes
-to ``out/runs/<run>.log``.
+to ``out/runs/<run>.log``. With ``backend="ray"`` each run is a Ray task with its share of CPUs
+and GPUs, on the cluster at ``RAY_ADDRESS`` or on one that Ray starts on this machine; the same
+rules skip and resume runs, so ``out`` must be a folder every node sees.
+
+:func:`sweep` runs a grid of config values × tasks × seeds by the same rules.
 """
 
 from __future__ import annotations
@@ -131,23 +135,31 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
 
 @dataclasses.dataclass(frozen=True)
 class Job:
-    """One run of a comparison, as a child process receives it (JSON on its command line)."""
+    """One run of a comparison, as a child process or a Ray task receives it (JSON-able)."""
 
-    figure: str
-    task: str
-    slug: str  # which of the figure's settings on ``task``
+    setting: Setting
     seed: int
     minutes: float
     preset: str
     run_dir: str
-    frames: tuple[int, ...] | None = None  # ablation-frames' subset, if one was asked for
 
-    def setting(self) -> Setting:
-        frames = None if self.frames is None else tuple(self.frames)  # a list after its trip through JSON
-        return next(s for s in figure_settings(self.figure, [self.task], frames) if s.slug == self.slug)
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> Job:
+        values = json.loads(text)
+        setting = values.pop("setting")
+        # JSON turned the overrides' tuples into lists; configs need them hashable again.
+        overrides = tuple((name, _tuples(value)) for name, value in setting.pop("overrides"))
+        return cls(Setting(**setting, overrides=overrides), **values)
 
     def run(self) -> str:
-        return run_setting(self.setting(), self.seed, self.minutes, self.preset, Path(self.run_dir))
+        return run_setting(self.setting, self.seed, self.minutes, self.preset, Path(self.run_dir))
+
+
+def _tuples(value):
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
 def cpu_groups(cpus: Sequence[int], workers: int) -> list[tuple[int, ...]]:
@@ -173,7 +185,7 @@ def launch_pinned(job: Job, cpus: tuple[int, ...]) -> str:
     log.parent.mkdir(parents=True, exist_ok=True)
     with log.open("a") as output:
         child = subprocess.Popen(
-            [sys.executable, "-m", "dva.analysis.compare", json.dumps(dataclasses.asdict(job))],
+            [sys.executable, "-m", "dva.analysis.compare", job.to_json()],
             stdout=output,
             stderr=subprocess.STDOUT,
         )
@@ -215,6 +227,87 @@ def run_parallel(
     return results  # type: ignore[return-value]
 
 
+Backend = Literal["local", "ray"]
+BACKENDS: tuple[str, ...] = typing.get_args(Backend)
+
+
+def run_on_ray(jobs: Sequence[Job], cpus: float, gpus: float) -> list[str]:
+    """Run ``jobs`` as Ray tasks of ``cpus`` CPUs and ``gpus`` GPUs each, on the cluster at
+    ``RAY_ADDRESS`` or on a local one that Ray starts; returns what each did. Every job runs even
+    when another fails; then the first failure is raised."""
+    try:
+        import ray
+    except ImportError:
+        raise ImportError("--backend ray needs the 'ray' extra: pip install 'dva[ray]'") from None
+    if not ray.is_initialized():
+        ray.init(address=os.environ.get("RAY_ADDRESS"), log_to_driver=False)
+
+    @ray.remote(num_cpus=cpus, num_gpus=gpus)
+    def run(job_json: str) -> str:
+        return Job.from_json(job_json).run()
+
+    futures = [run.remote(job.to_json()) for job in jobs]
+    results: list[str | Exception] = []
+    for future in futures:
+        try:
+            results.append(ray.get(future))
+        except Exception as error:  # noqa: BLE001 - reported after the other runs finished
+            results.append(RuntimeError(f"a run failed on Ray: {error}"))
+    for result in results:
+        if isinstance(result, Exception):
+            raise result
+    return results  # type: ignore[return-value]
+
+
+def run_jobs(
+    settings: Sequence[Setting],
+    seeds: Sequence[int],
+    minutes: float,
+    out: Path,
+    preset: str,
+    threshold: float | None,
+    workers: int,
+    backend: str,
+    cpus_per_run: float,
+    gpus_per_run: float,
+) -> tuple[list[Path], str]:
+    """Run (or complete) every setting × seed under ``out/runs``, then write the curves and the
+    table into ``out``."""
+    from dva.analysis.plots import plot_runs, write_summary  # matplotlib: only when plotting
+
+    if backend not in BACKENDS:
+        raise ValueError(f"backend {backend!r} is not allowed; use one of: {', '.join(BACKENDS)}")
+    groups = cpu_groups(available_cpus(), workers) if backend == "local" else []
+    labels: dict[Path, str] = {}
+    jobs: list[Job] = []
+    for setting in settings:
+        for seed in seeds:
+            run_dir = out / "runs" / f"{setting.slug}_s{seed}"
+            labels[run_dir] = f"{setting.label} on {setting.task}"
+            jobs.append(Job(setting, seed, minutes, preset, str(run_dir)))
+
+    def report(job: Job, action: str) -> None:
+        print(f"{labels[Path(job.run_dir)]}, seed {job.seed}: {action}", flush=True)
+
+    if backend == "local" and workers == 1:
+        for job in jobs:
+            report(job, job.run())
+    else:
+        pending = [job for job in jobs if not is_complete(Path(job.run_dir), minutes)]
+        if backend == "ray":
+            print(f"{len(pending)} runs on Ray, {cpus_per_run} CPUs and {gpus_per_run} GPUs each", flush=True)
+            done = run_on_ray(pending, cpus_per_run, gpus_per_run) if pending else []
+        else:
+            print(f"{len(pending)} runs on {workers} workers of {len(groups[0])} CPUs each", flush=True)
+            done = run_parallel(pending, groups, launch_pinned)
+        launched = dict(zip(pending, done))
+        for job in jobs:
+            report(job, launched.get(job, "skipped (complete)"))
+    figures = plot_runs(list(labels), out, labels=labels)
+    table, markdown = write_summary(list(labels), out, threshold=threshold, labels=labels)
+    return [*figures, table, out / "summary.md"], markdown
+
+
 def compare(
     figure: str,
     tasks: list[str],
@@ -225,48 +318,69 @@ def compare(
     threshold: float | None = None,
     workers: int = 1,
     frames: Sequence[int] | None = None,
+    backend: str = "local",
+    cpus_per_run: float = 1.0,
+    gpus_per_run: float = 0.0,
 ) -> tuple[list[Path], str]:
     """Run (or complete) every run of ``figure`` and write its curves and table into ``out``;
-    ``workers`` > 1 runs that many at once, each on its own share of the CPUs; ``frames`` picks
-    ablation-frames' stack sizes."""
-    from dva.analysis.plots import plot_runs, write_summary  # matplotlib: only when plotting
+    ``workers`` > 1 runs that many at once, each on its own share of the CPUs, or ``backend="ray"``
+    as Ray tasks of ``cpus_per_run`` / ``gpus_per_run``; ``frames`` picks ablation-frames' stack
+    sizes."""
+    settings = figure_settings(figure, tasks, frames)
+    return run_jobs(settings, seeds, minutes, out, preset, threshold, workers, backend, cpus_per_run, gpus_per_run)
 
-    groups = cpu_groups(available_cpus(), workers)
-    labels: dict[Path, str] = {}
-    jobs: list[Job] = []
-    for setting in figure_settings(figure, tasks, frames):
-        for seed in seeds:
-            run_dir = out / "runs" / f"{setting.slug}_s{seed}"
-            labels[run_dir] = f"{setting.label} on {setting.task}"
-            jobs.append(
-                Job(
-                    figure,
-                    setting.task,
-                    setting.slug,
-                    seed,
-                    minutes,
-                    preset,
-                    str(run_dir),
-                    None if frames is None else tuple(frames),
-                )
+
+def grid_settings(algo: str, tasks: Sequence[str], grid: Sequence[str]) -> list[Setting]:
+    """One setting per task and combination of ``grid``'s values; each entry is ``FIELD=V1,V2,…``
+    for a field of ``algo``'s config, values read as JSON where they parse (numbers, true/false,
+    lists) and as strings otherwise."""
+    import itertools
+
+    from dva.algorithms import check_algo
+
+    fields = {field.name for field in dataclasses.fields(check_algo(algo).config_type)}
+    axes: list[list[tuple[str, object]]] = []
+    for entry in grid:
+        name, _, values = entry.partition("=")
+        name = name.strip().replace("-", "_")
+        if not values or name not in fields:
+            raise ValueError(
+                f"grid entry {entry!r} is not allowed; use FIELD=V1,V2 with a field of {algo}'s config "
+                f"({', '.join(sorted(fields))})"
             )
+        axes.append([(name, _tuples(value)) for value in _values(values)])
+    combos = list(itertools.product(*axes)) if axes else [()]
+    label = lambda combo: ", ".join(f"{name}={value}" for name, value in combo) or algo
+    return [Setting(label(combo), task, algo, tuple(combo)) for task in tasks for combo in combos]
 
-    def report(job: Job, action: str) -> None:
-        print(f"{labels[Path(job.run_dir)]}, seed {job.seed}: {action}", flush=True)
 
-    if workers == 1:
-        for job in jobs:
-            report(job, job.run())
-    else:
-        pending = [job for job in jobs if not is_complete(Path(job.run_dir), minutes)]
-        print(f"{len(pending)} runs on {workers} workers of {len(groups[0])} CPUs each", flush=True)
-        launched = dict(zip(pending, run_parallel(pending, groups, launch_pinned)))
-        for job in jobs:
-            report(job, launched.get(job, "skipped (complete)"))
-    figures = plot_runs(list(labels), out, labels=labels)
-    table, markdown = write_summary(list(labels), out, threshold=threshold, labels=labels)
-    return [*figures, table, out / "summary.md"], markdown
+def _values(text: str) -> list:
+    """``1e-3,2e-3`` → [0.001, 0.002]; ``[64,64],[128]`` → [[64, 64], [128]]; ``a,b`` → ["a", "b"]."""
+    try:
+        return json.loads(f"[{text}]")
+    except json.JSONDecodeError:
+        return text.split(",")
+
+
+def sweep(
+    algo: str,
+    tasks: list[str],
+    grid: list[str],
+    seeds: list[int],
+    minutes: float,
+    out: Path,
+    preset: str = "cpu",
+    threshold: float | None = None,
+    workers: int = 1,
+    backend: str = "local",
+    cpus_per_run: float = 1.0,
+    gpus_per_run: float = 0.0,
+) -> tuple[list[Path], str]:
+    """Every combination of ``grid``'s values × ``tasks`` × ``seeds`` of ``algo``, by the rules of
+    :func:`compare`."""
+    settings = grid_settings(algo, tasks, grid)
+    return run_jobs(settings, seeds, minutes, out, preset, threshold, workers, backend, cpus_per_run, gpus_per_run)
 
 
 if __name__ == "__main__":  # one run of a comparison in a child process (see launch_pinned)
-    print(Job(**json.loads(sys.argv[1])).run())
+    print(Job.from_json(sys.argv[1]).run())
