@@ -250,7 +250,7 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
     checkpoint, no completion mark) resumes, the other trains; called again, both are skipped."""
     import ray
 
-    from dva.analysis.compare import sweep
+    from dva.analysis.compare import run_settings
     from dva.training import read_progress, train
 
     small = ["num_envs=4", "horizon=8", "critic_minibatches=2", "actor_hidden=[16]", "critic_hidden=[16]"]
@@ -262,9 +262,9 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
         "cartpole_swingup", "shac", iterations=1, run_dir=interrupted, checkpoint_every=1, **dict(settings[0].overrides)
     )
     try:
-        sweep("shac", ["cartpole_swingup"], grid, [0], 0.5, tmp_path, backend="ray")
+        run_settings(settings, tmp_path, seeds=[0], minutes=0.5, backend="ray")
         first = capsys.readouterr().out
-        sweep("shac", ["cartpole_swingup"], grid, [0], 0.5, tmp_path, backend="ray")
+        run_settings(settings, tmp_path, seeds=[0], minutes=0.5, backend="ray")
         second = capsys.readouterr().out
     finally:
         ray.shutdown()

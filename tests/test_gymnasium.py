@@ -63,15 +63,21 @@ def test_a_seed_makes_the_episodes_reproducible(state_env):
     assert np.abs(first[0, 0] - first[0, 1]).max() > 0  # the sub-environments start apart
 
 
+def push_off_the_rail(env):
+    """Push right from a seeded reset until some cart leaves the rail: the observation before
+    that step, and that step's outputs."""
+    obs, _ = env.reset(seed=1)
+    for _ in range(239):
+        previous, (obs, reward, terminated, truncated, info) = obs, env.step(np.ones((NUM_ENVS, 1), np.float32))
+        if terminated.any():
+            return previous, obs, reward, terminated, truncated, info
+    raise AssertionError("no cart left the rail")
+
+
 def test_running_off_the_rail_terminates_and_resets_in_the_same_step(state_env):
     """Pushing right drives the cart past x = 2.5 (termination, not truncation); that step returns
     the next episode's first observation and the one it reached in info["final_obs"]."""
-    obs, _ = state_env.reset(seed=1)
-    for _ in range(239):
-        previous = obs
-        obs, reward, terminated, truncated, info = state_env.step(np.ones((NUM_ENVS, 1), np.float32))
-        if terminated.any():
-            break
+    previous, obs, reward, terminated, truncated, info = push_off_the_rail(state_env)
     assert terminated.any() and not truncated.any()
     np.testing.assert_array_equal(info["_final_obs"], terminated)
     ended = np.flatnonzero(terminated)
@@ -94,12 +100,7 @@ def test_the_episode_length_truncates_every_sub_environment(state_env):
 def test_the_final_frame_stack_continues_the_previous_one(pixel_env):
     """At an episode's end the returned stack restarts as one frame tiled; the final one is the
     previous stack shifted by one frame plus a frame of the pose the step reached."""
-    obs, _ = pixel_env.reset(seed=1)
-    for _ in range(239):
-        previous = obs
-        obs, _, terminated, _, info = pixel_env.step(np.ones((NUM_ENVS, 1), np.float32))
-        if terminated.any():
-            break
+    previous, obs, _, terminated, _, info = push_off_the_rail(pixel_env)
     env = int(np.flatnonzero(terminated)[0])
     final = info["final_obs"]["pixels"][env]
     np.testing.assert_array_equal(final[..., :3], previous["pixels"][env][..., 3:])

@@ -326,10 +326,10 @@ class CompareCommand(ManyRuns):
     """ablation-frames only: the stack sizes to compare (default 1 2 3 4 5 6)."""
 
     def run(self) -> None:
-        from dva.analysis.compare import compare
+        from dva.analysis.compare import figure_settings, run_settings
 
-        out = self.out / self.figure
-        paths, markdown = compare(self.figure, self.tasks, out=out, frames=self.frames, **self.run_options())
+        settings = figure_settings(self.figure, self.tasks, self.frames)
+        paths, markdown = run_settings(settings, self.out / self.figure, **self.run_options())
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 
@@ -347,9 +347,10 @@ class SweepCommand(ManyRuns):
     out: Path = Path("sweeps")
 
     def run(self) -> None:
-        from dva.analysis.compare import sweep
+        from dva.analysis.compare import grid_settings, run_settings
 
-        paths, markdown = sweep(self.algo, self.tasks, self.grid, out=self.out, **self.run_options())
+        settings = grid_settings(self.algo, self.tasks, self.grid)
+        paths, markdown = run_settings(settings, self.out, **self.run_options())
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 

@@ -14,7 +14,8 @@ to ``out/runs/<run>.log``. With ``backend="ray"`` each run is a Ray task with it
 and GPUs, on the cluster at ``RAY_ADDRESS`` or on one that Ray starts on this machine; the same
 rules skip and resume runs, so ``out`` must be a folder every node sees.
 
-:func:`sweep` runs a grid of config values × tasks × seeds by the same rules.
+``dva sweep`` (:func:`grid_settings`) runs a grid of config values × tasks × seeds by the same
+rules.
 """
 
 from __future__ import annotations
@@ -259,20 +260,24 @@ def run_on_ray(jobs: Sequence[Job], cpus: float, gpus: float) -> list[str]:
     return results  # type: ignore[return-value]
 
 
-def run_jobs(
+def run_settings(
     settings: Sequence[Setting],
+    out: Path,
+    *,
     seeds: Sequence[int],
     minutes: float,
-    out: Path,
-    preset: str,
-    threshold: float | None,
-    workers: int,
-    backend: str,
-    cpus_per_run: float,
-    gpus_per_run: float,
+    preset: str = "cpu",
+    threshold: float | None = None,
+    workers: int = 1,
+    backend: str = "local",
+    cpus_per_run: float = 1.0,
+    gpus_per_run: float = 0.0,
 ) -> tuple[list[Path], str]:
-    """Run (or complete) every setting × seed under ``out/runs``, then write the curves and the
-    table into ``out``."""
+    """Run (or complete) every setting × seed under ``out/runs`` for ``minutes`` each, then write
+    the curves and the table (time to ``threshold``) into ``out``. ``workers`` > 1 runs that many at
+    once, each on its own share of the CPUs; ``backend="ray"`` runs them as Ray tasks of
+    ``cpus_per_run`` CPUs and ``gpus_per_run`` GPUs. Settings come from :func:`figure_settings`
+    (``dva compare``) or :func:`grid_settings` (``dva sweep``)."""
     from dva.analysis.plots import plot_runs, write_summary  # matplotlib: only when plotting
 
     if backend not in BACKENDS:
@@ -308,28 +313,6 @@ def run_jobs(
     return [*figures, table, out / "summary.md"], markdown
 
 
-def compare(
-    figure: str,
-    tasks: list[str],
-    seeds: list[int],
-    minutes: float,
-    out: Path,
-    preset: str = "cpu",
-    threshold: float | None = None,
-    workers: int = 1,
-    frames: Sequence[int] | None = None,
-    backend: str = "local",
-    cpus_per_run: float = 1.0,
-    gpus_per_run: float = 0.0,
-) -> tuple[list[Path], str]:
-    """Run (or complete) every run of ``figure`` and write its curves and table into ``out``;
-    ``workers`` > 1 runs that many at once, each on its own share of the CPUs, or ``backend="ray"``
-    as Ray tasks of ``cpus_per_run`` / ``gpus_per_run``; ``frames`` picks ablation-frames' stack
-    sizes."""
-    settings = figure_settings(figure, tasks, frames)
-    return run_jobs(settings, seeds, minutes, out, preset, threshold, workers, backend, cpus_per_run, gpus_per_run)
-
-
 def grid_settings(algo: str, tasks: Sequence[str], grid: Sequence[str]) -> list[Setting]:
     """One setting per task and combination of ``grid``'s values; each entry is ``FIELD=V1,V2,…``
     for a field of ``algo``'s config, values read as JSON where they parse (numbers, true/false,
@@ -360,26 +343,6 @@ def _values(text: str) -> list:
         return json.loads(f"[{text}]")
     except json.JSONDecodeError:
         return text.split(",")
-
-
-def sweep(
-    algo: str,
-    tasks: list[str],
-    grid: list[str],
-    seeds: list[int],
-    minutes: float,
-    out: Path,
-    preset: str = "cpu",
-    threshold: float | None = None,
-    workers: int = 1,
-    backend: str = "local",
-    cpus_per_run: float = 1.0,
-    gpus_per_run: float = 0.0,
-) -> tuple[list[Path], str]:
-    """Every combination of ``grid``'s values × ``tasks`` × ``seeds`` of ``algo``, by the rules of
-    :func:`compare`."""
-    settings = grid_settings(algo, tasks, grid)
-    return run_jobs(settings, seeds, minutes, out, preset, threshold, workers, backend, cpus_per_run, gpus_per_run)
 
 
 if __name__ == "__main__":  # one run of a comparison in a child process (see launch_pinned)
