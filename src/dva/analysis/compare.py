@@ -241,6 +241,9 @@ def run_on_ray(jobs: Sequence[Job], cpus: float, gpus: float) -> list[str]:
     except ImportError:
         raise ImportError("--backend ray needs the 'ray' extra: pip install 'dva[ray]'") from None
     if not ray.is_initialized():
+        # A cluster started here runs its workers at normal priority, as the local backend's
+        # processes (Ray's default niceness of 15 lets anything else on the machine starve them).
+        os.environ.setdefault("RAY_worker_niceness", "0")
         ray.init(address=os.environ.get("RAY_ADDRESS"), log_to_driver=False)
 
     @ray.remote(num_cpus=cpus, num_gpus=gpus)
