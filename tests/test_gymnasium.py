@@ -34,6 +34,14 @@ def test_every_task_is_registered_with_a_vector_entry_point():
         assert spec.kwargs == {"task": task}
 
 
+@pytest.mark.parametrize("task", TASK_NAMES)
+def test_every_task_makes_a_vector_env_whose_space_holds_its_first_observation(task):
+    env = gymnasium.make_vec(env_id(task), num_envs=NUM_ENVS)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (NUM_ENVS, *env.single_observation_space.shape) and env.observation_space.contains(obs)
+    assert env.single_action_space.shape == (env.unwrapped.task.action_dim,)
+
+
 def test_spaces_contain_what_reset_and_step_return(state_env, pixel_env):
     assert isinstance(state_env, DvaVectorEnv)
     assert state_env.single_observation_space.shape == (5,)
