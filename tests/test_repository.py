@@ -27,6 +27,18 @@ def test_ruff_lint_and_format():
     assert form.returncode == 0, form.stdout + form.stderr
 
 
+def test_the_algorithms_never_import_the_training_loop():
+    """The loop builds agents and loads a teacher above itself; an algorithm that imported the loop
+    (even inside a function) would make the import circle algorithms → training → algorithms."""
+    import ast
+
+    for module in (ROOT / "src" / "dva" / "algorithms").glob("*.py"):
+        for node in ast.walk(ast.parse(module.read_text())):
+            names = [node.module] if isinstance(node, ast.ImportFrom) else []
+            names += [alias.name for alias in node.names] if isinstance(node, ast.Import) else []
+            assert not any(name and name.startswith("dva.training") for name in names), module.name
+
+
 def test_docs_build_strictly(tmp_path):
     mkdocs = shutil.which("mkdocs", path=str(Path(sys.executable).parent))
     result = run(mkdocs, "build", "--strict", "--quiet", "--site-dir", str(tmp_path / "site"))

@@ -13,6 +13,7 @@ import jax
 import numpy as np
 import pytest
 
+from dva import training
 from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
 from dva.training import TrainingDiverged, build, checkpoint_manager, compiled, initial_state, load_run, train
 
@@ -243,11 +244,11 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
 
     # A teacher trained within the same call (here a stand-in that takes 2 s) is counted once: the
     # student's clock starts at the teacher's logged end, not 2 s later.
-    def train_teacher(config, *args):
+    def train_teacher(algo, config, *args):
         time.sleep(2.0)
         return dataclasses.replace(config, teacher=str(teacher))
 
-    monkeypatch.setitem(ALGORITHMS, "dagger", dataclasses.replace(ALGORITHMS["dagger"], prepare=train_teacher))
+    monkeypatch.setattr(training, "train_teacher", train_teacher)
     in_call = train(
         "cartpole_swingup",
         "dagger",

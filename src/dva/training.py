@@ -22,7 +22,7 @@ from jax.sharding import Mesh
 from tqdm import tqdm
 
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
-from dva.algorithms.base import Agent, RecurrentAgent
+from dva.algorithms.base import Agent, RecurrentAgent, TeacherRun
 from dva.evaluation import evaluate_policy
 from dva.sharding import device_mesh, place
 from dva.tasks import make_task
@@ -68,7 +68,17 @@ def _agent(task: str, algo: str, config, physics: str | None, mesh: Mesh | None)
     next seed of ``dva compare``, ``dva eval`` after ``dva train`` — share one agent, its renderer and,
     through :func:`compiled`, its traced and compiled functions (tracing the reverse pass through
     MJX alone takes tens of seconds on a CPU). The seed is not part of the config."""
-    return build_agent(task, algo, config, physics, mesh)
+    teacher = load_teacher(config.teacher) if check_algo(algo).teacher_algo else None
+    return build_agent(task, algo, config, physics, mesh, teacher)
+
+
+def load_teacher(run_dir: str | None) -> TeacherRun:
+    """The finished run an agent learns from (see :class:`~dva.algorithms.base.TeacherRun`)."""
+    if run_dir is None:
+        raise ValueError("teacher = None: this algorithm needs a teacher run directory (--teacher)")
+    spec, agent, state = load_run(run_dir)
+    last = read_progress(run_dir)[-1]
+    return TeacherRun(spec.algo, agent, agent.policy(state), (float(last["wall_time"]), int(last["env_steps"])))
 
 
 def run_mesh(spec: RunSpec, devices: int | None) -> Mesh | None:
@@ -235,139 +245,259 @@ def train(
     how many devices the environments split over (:mod:`dva.sharding`; None: all JAX sees, for
     the algorithms that split). ``tracker``: also log to Weights & Biases (the caller finishes it).
     """
-    start = time.perf_counter()
+    clock = RunClock()
     run_dir = Path(run_dir)
+    spec = open_run(run_dir, resume, clock, task, algo, preset, seed, physics, config_overrides)
+    mesh = run_mesh(spec, devices)
+    agent = build(spec, mesh)
+    checkpoints = Checkpoints(checkpoint_manager(run_dir), checkpoint_every, checkpoint_minutes)
+    if tracker is not None:
+        tracker.start(run_dir, spec.__dict__)
+    log = ProgressLog(run_dir, csv_fields(agent), tracker)
+    state = starting_state(agent, spec, mesh, checkpoints.manager, log, resume)
+    # Where the curve starts: the end of the last run, or the cost of what the agent builds on
+    # (DAgger's teacher), so that comparisons count it.
+    curve = CurveOrigin.of(agent, log)
+    budget = Budget.of(agent, iterations, minutes, curve, first=int(state.iteration))
+    evaluations = Evaluations(agent, clock, eval_every, eval_minutes)
+    if not log.rows:
+        log.append(untrained_row(agent, state, curve, evaluations))
+    bar = tqdm(total=budget.iterations, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
+    try:
+        train_return = float("nan")
+        while not budget.spent(state, clock):
+            state, metrics, seconds = run_iteration(agent, state)
+            raise_if_diverged(agent, metrics, int(state.iteration), checkpoints.manager)
+            train_return = latest_train_return(metrics, train_return)
+            row = progress_row(agent, state, metrics, seconds, train_return, curve, clock, evaluations)
+            log.append(row)
+            checkpoints.save_if_due(state)
+            show_progress(bar, row, budget, clock)
+            if metrics.get("stop", False):  # the agent's own stopping rule (DAgger: BC loss low enough)
+                break
+        evaluations.end_on_one(log, state)
+    finally:
+        bar.close()
+        log.close()
+    checkpoints.save_final(state)
+    return run_dir
+
+
+class RunClock:
+    """Seconds of a :func:`train` call on the run's clock: everything but evaluations and what was
+    paid for elsewhere (a teacher, counted through the agent's ``prior_cost``)."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+
+    def seconds(self) -> float:
+        return time.perf_counter() - self.start
+
+    def exclude(self, seconds: float) -> None:
+        """Take ``seconds`` off the clock."""
+        self.start += seconds
+
+
+def open_run(run_dir: Path, resume: bool, clock: RunClock, task, algo, preset, seed, physics, overrides) -> RunSpec:
+    """The run's spec: read from ``run.json`` on resume, else made (its teacher trained first, off
+    the clock) and written there."""
     spec_path = run_dir / "run.json"
     if resume:
         if not spec_path.exists():
             raise ValueError(f"--resume: no run to resume in {run_dir} (missing run.json)")
-        spec = RunSpec(**json.loads(spec_path.read_text()))
-    else:
-        if spec_path.exists():
-            raise ValueError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
-        config = make_config(task, algo, preset, **config_overrides)
-        preparing = time.perf_counter()
-        config = check_algo(algo).prepare(config, task, preset, seed, run_dir, physics)
-        # What prepare trained (DAgger's teacher) is on the clock through agent.prior_cost: not twice.
-        start += time.perf_counter() - preparing
-        spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        spec_path.write_text(json.dumps(spec.__dict__, indent=2))
-    mesh = run_mesh(spec, devices)
-    agent = build(spec, mesh)
-    placement = committed if mesh is None else functools.partial(place, mesh=mesh, batch_fields=agent.batch_fields)
-    total = iterations if iterations is not None else (None if minutes is not None else agent.default_iterations)
+        return RunSpec(**json.loads(spec_path.read_text()))
+    if spec_path.exists():
+        raise ValueError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
+    config = make_config(task, algo, preset, **overrides)
+    began = time.perf_counter()
+    config = train_teacher(algo, config, task, preset, seed, run_dir, physics)
+    # The teacher's time is on the clock through agent.prior_cost: not twice.
+    clock.exclude(time.perf_counter() - began)
+    spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    spec_path.write_text(json.dumps(spec.__dict__, indent=2))
+    return spec
 
-    manager = checkpoint_manager(run_dir)
-    if tracker is not None:
-        tracker.start(run_dir, spec.__dict__)
-    log = ProgressLog(run_dir, csv_fields(agent), tracker)
+
+def train_teacher(algo: str, config, task: str, preset: str, seed: int, run_dir: Path, physics):
+    """For an algorithm that learns from a teacher run (DAgger) and has none: train one with the
+    teacher's algorithm for ``config.teacher_minutes`` into ``run_dir/teacher``; the config then
+    names it."""
+    teacher_algo = check_algo(algo).teacher_algo
+    if teacher_algo is None or config.teacher is not None:
+        return config
+    teacher_dir = train(
+        task,
+        teacher_algo,
+        preset=preset,
+        seed=seed,
+        minutes=config.teacher_minutes,
+        run_dir=run_dir / "teacher",
+        physics=physics,
+    )
+    return dataclasses.replace(config, teacher=str(teacher_dir))
+
+
+def starting_state(agent: Agent, spec: RunSpec, mesh: Mesh | None, manager, log: ProgressLog, resume: bool):
+    """The latest checkpoint on resume (rows logged after it are dropped), else a fresh state;
+    split over ``mesh``'s devices where there is one."""
+    placement = committed if mesh is None else functools.partial(place, mesh=mesh, batch_fields=agent.batch_fields)
     if resume and manager.latest_step() is not None:
         state = restore(manager, agent, spec.seed, placement)
-        log.truncate(int(state.iteration))  # drop rows logged after the checkpoint
-    else:
-        state = placement(compiled(agent).init(jax.random.PRNGKey(spec.seed)))
-    # Where the curve starts: the end of the last run, or the cost of what the agent builds on
-    # (DAgger's teacher), so that comparisons count it.
-    offset_time = float(log.rows[-1]["wall_time"]) if log.rows else agent.prior_cost[0]
-    # A fresh run's budget includes that prior cost; a resumed run's ``minutes`` are minutes more.
-    spent_before = 0.0 if log.rows else agent.prior_cost[0]
+        log.truncate(int(state.iteration))
+        return state
+    return placement(compiled(agent).init(jax.random.PRNGKey(spec.seed)))
 
-    _, step_fn, evaluate, _ = compiled(agent)
 
-    evaluation_seconds = 0.0  # kept off the clock: evaluating is not training
+class CurveOrigin(NamedTuple):
+    """The wall-clock seconds and env steps the logged curve continues from, and the minutes of
+    the budget already spent (a fresh run pays its teacher's; a resumed run's budget is more)."""
 
-    def clock() -> float:
-        """Seconds of this call on the run's clock: everything but evaluations."""
-        return time.perf_counter() - start - evaluation_seconds
+    seconds: float
+    env_steps: int
+    spent_minutes: float
 
-    def eval_return(state) -> float:
+    @classmethod
+    def of(cls, agent: Agent, log: ProgressLog) -> CurveOrigin:
+        if log.rows:
+            return cls(float(log.rows[-1]["wall_time"]), agent.prior_cost[1], 0.0)
+        return cls(agent.prior_cost[0], agent.prior_cost[1], agent.prior_cost[0] / 60)
+
+
+@dataclasses.dataclass
+class Budget:
+    """When :func:`train` stops: after ``iterations`` more, or ``minutes`` on the clock."""
+
+    iterations: int | None
+    minutes: float | None
+    first: int
+    spent_minutes: float
+
+    @classmethod
+    def of(cls, agent: Agent, iterations, minutes, curve: CurveOrigin, first: int) -> Budget:
+        if iterations is None and minutes is None:
+            iterations = agent.default_iterations
+        return cls(iterations, minutes, first, curve.spent_minutes)
+
+    def elapsed_minutes(self, clock: RunClock) -> float:
+        return self.spent_minutes + clock.seconds() / 60
+
+    def spent(self, state, clock: RunClock) -> bool:
+        done = int(state.iteration) - self.first
+        return (self.iterations is not None and done >= self.iterations) or (
+            self.minutes is not None and self.elapsed_minutes(clock) >= self.minutes
+        )
+
+
+class Evaluations:
+    """When to evaluate, and the evaluation itself (kept off the clock)."""
+
+    def __init__(self, agent: Agent, clock: RunClock, every: int | None, minutes: float | None) -> None:
+        self.agent, self.clock, self.every, self.minutes = agent, clock, every, minutes
+        self.on = bool(every or minutes)
+        self.last = time.perf_counter()
+
+    def due(self, iteration: int) -> bool:
+        return bool(self.every and iteration % self.every == 0) or bool(
+            self.minutes and time.perf_counter() - self.last >= 60 * self.minutes
+        )
+
+    def __call__(self, state) -> float:
         """Mean deterministic return, one full episode per env, with a key per iteration."""
-        nonlocal evaluation_seconds
         began = time.perf_counter()
         key = jax.random.PRNGKey(10_000 + int(state.iteration))
-        value = float(np.mean(evaluate(agent.policy(state), key)))
-        evaluation_seconds += time.perf_counter() - began
+        value = float(np.mean(compiled(self.agent).evaluate(self.agent.policy(state), key)))
+        self.last = time.perf_counter()
+        self.clock.exclude(self.last - began)
         return value
 
-    evaluating = bool(eval_every or eval_minutes)
-
-    def evaluation_due(n: int) -> bool:
-        return bool(eval_every and n % eval_every == 0) or bool(
-            eval_minutes and time.perf_counter() - last_eval >= 60 * eval_minutes
-        )
-
-    first = int(state.iteration)
-    last_train_return, last_save = float("nan"), time.perf_counter()
-    if not log.rows:  # the untrained policy's return: where the curve starts (no evaluation: nan)
-        log.append(
-            {
-                "iteration": 0,
-                "env_steps": agent.prior_cost[1],
-                "wall_time": offset_time,
-                "train_return": float("nan"),
-                "eval_return": eval_return(state) if evaluating else float("nan"),
-            }
-        )
-    last_eval = time.perf_counter()
-    bar = tqdm(total=total, initial=0, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
-    try:
-        while True:
-            elapsed_min = (spent_before + clock()) / 60
-            done = int(state.iteration) - first
-            if (total is not None and done >= total) or (minutes is not None and elapsed_min >= minutes):
-                break
-            tick = time.perf_counter()
-            state, metrics = step_fn(state)
-            metrics = jax.device_get(metrics)  # one small transfer per iteration, for the log
-            iteration_time = time.perf_counter() - tick
-            n = int(state.iteration)
-            due = evaluation_due(n)
-            if not metrics["healthy"]:
-                raise TrainingDiverged(
-                    f"{agent.abort_reason(metrics)} at iteration {n}; the last good "
-                    f"checkpoint is in {manager.directory}",
-                    n,
-                    metrics,
-                )
-            if metrics["finished_episodes"] > 0:
-                last_train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
-            row = {
-                "iteration": n,
-                "env_steps": agent.prior_cost[1] + n * agent.env_steps_per_iteration,
-                "wall_time": round(offset_time + clock(), 3),
-                "train_return": last_train_return,
-                "eval_return": eval_return(state) if due else "",
-                **{name: float(metrics[name]) for name in agent.metric_names},
-                "iteration_time": round(iteration_time, 4),
-            }
-            log.append(row)
-            if due:
-                last_eval = time.perf_counter()
-            if (
-                n % checkpoint_every == 0
-                if checkpoint_every
-                else time.perf_counter() - last_save >= 60 * checkpoint_minutes
-            ):
-                save(manager, state)
-                last_save = time.perf_counter()
-            bar.update(1)
-            postfix = dict(steps=row["env_steps"], ret=f"{last_train_return:.1f}", s_it=f"{iteration_time:.2f}")
-            if total is None:  # a time budget: tqdm cannot know the ETA, so show what is left
-                postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(max(0.0, minutes * 60 - elapsed_min * 60)))
-            bar.set_postfix(postfix)
-            if metrics.get("stop", False):  # the agent's own stopping rule (DAgger: BC loss low enough)
-                break
+    def end_on_one(self, log: ProgressLog, state) -> None:
+        """Evaluate the final state if its row has no evaluation yet."""
         last = log.rows[-1]
-        if evaluating and last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):
-            log.set_last("eval_return", eval_return(state))  # end on an evaluation
-    finally:
-        bar.close()
-        log.close()
-    if manager.latest_step() != int(state.iteration):
-        save(manager, state)
-    manager.wait_until_finished()
-    return run_dir
+        if self.on and last["eval_return"] == "" and int(last["iteration"]) == int(state.iteration):
+            log.set_last("eval_return", self(state))
+
+
+def untrained_row(agent: Agent, state, curve: CurveOrigin, evaluations: Evaluations) -> dict:
+    """The first row: the untrained policy's return, where the curve starts (no evaluation: nan)."""
+    return {
+        "iteration": 0,
+        "env_steps": curve.env_steps,
+        "wall_time": curve.seconds,
+        "train_return": float("nan"),
+        "eval_return": evaluations(state) if evaluations.on else float("nan"),
+    }
+
+
+def run_iteration(agent: Agent, state):
+    """One jitted iteration: the new state, its metrics on the host (one small transfer) and its
+    seconds."""
+    began = time.perf_counter()
+    state, metrics = compiled(agent).iteration(state)
+    metrics = jax.device_get(metrics)
+    return state, metrics, time.perf_counter() - began
+
+
+def raise_if_diverged(agent: Agent, metrics: dict, iteration: int, manager: ocp.CheckpointManager) -> None:
+    if not metrics["healthy"]:
+        raise TrainingDiverged(
+            f"{agent.abort_reason(metrics)} at iteration {iteration}; the last good "
+            f"checkpoint is in {manager.directory}",
+            iteration,
+            metrics,
+        )
+
+
+def latest_train_return(metrics: dict, previous: float) -> float:
+    """The mean return of the episodes that ended in this iteration, else ``previous``."""
+    if metrics["finished_episodes"] > 0:
+        return float(metrics["finished_return_sum"] / metrics["finished_episodes"])
+    return previous
+
+
+def progress_row(agent, state, metrics, seconds, train_return, curve, clock, evaluations) -> dict:
+    """The iteration's row of ``progress.csv`` (evaluated when due)."""
+    n = int(state.iteration)
+    return {
+        "iteration": n,
+        "env_steps": curve.env_steps + n * agent.env_steps_per_iteration,
+        "wall_time": round(curve.seconds + clock.seconds(), 3),
+        "train_return": train_return,
+        "eval_return": evaluations(state) if evaluations.due(n) else "",
+        **{name: float(metrics[name]) for name in agent.metric_names},
+        "iteration_time": round(seconds, 4),
+    }
+
+
+class Checkpoints:
+    """Saves every ``every`` iterations if given, else every ``minutes``, and at the end."""
+
+    def __init__(self, manager: ocp.CheckpointManager, every: int | None, minutes: float) -> None:
+        self.manager, self.every, self.minutes = manager, every, minutes
+        self.last = time.perf_counter()
+
+    def save_if_due(self, state) -> None:
+        if (
+            int(state.iteration) % self.every == 0
+            if self.every
+            else time.perf_counter() - self.last >= 60 * self.minutes
+        ):
+            save(self.manager, state)
+            self.last = time.perf_counter()
+
+    def save_final(self, state) -> None:
+        if self.manager.latest_step() != int(state.iteration):
+            save(self.manager, state)
+        self.manager.wait_until_finished()
+
+
+def show_progress(bar: tqdm, row: dict, budget: Budget, clock: RunClock) -> None:
+    bar.update(1)
+    postfix = dict(steps=row["env_steps"], ret=f"{row['train_return']:.1f}", s_it=f"{row['iteration_time']:.2f}")
+    if budget.iterations is None:  # a time budget: tqdm cannot know the ETA, so show what is left
+        left = max(0.0, 60 * (budget.minutes - budget.elapsed_minutes(clock)))
+        postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(left))
+    bar.set_postfix(postfix)
 
 
 class ProgressLog:

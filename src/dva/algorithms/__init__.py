@@ -14,9 +14,9 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, Literal
 
-from dva.algorithms.base import Agent
+from dva.algorithms.base import Agent, TeacherRun
 from dva.algorithms.curl import CURL, CURLConfig
-from dva.algorithms.dagger import DAggerConfig, make_dagger, train_teacher_if_missing
+from dva.algorithms.dagger import DAggerConfig, make_dagger
 from dva.algorithms.dreamerv3 import DreamerV3, DreamerV3Config
 from dva.algorithms.drqv2 import DrQV2, DrQV2Config
 from dva.algorithms.shac import SHAC, SHACConfig
@@ -33,13 +33,13 @@ class Algorithm:
 
     description: str
     config_type: type
-    make_agent: Callable[[PixelObservations, Any], Agent]
+    make_agent: Callable[..., Agent]  # (env, config) → agent; with a teacher_algo, (env, config, teacher)
     preset: Callable[[str, str], dict]  # (task, preset) → config values
     defining: dict[str, Any]  # config values that make it this algorithm (not overridable)
     renderer: Callable[[Any], RendererKind]  # which renderer its config needs
-    # Before a new run: (config, task, preset, seed, run_dir, physics) → the config to run (DAgger
-    # trains its teacher here when it has none).
-    prepare: Callable[..., Any] = lambda config, *_: config
+    # The algorithm of the finished run it learns from (DAgger: a SHAC teacher), named by its
+    # config's `teacher` run directory; a run without one trains one first for `teacher_minutes`.
+    teacher_algo: str | None = None
     # What to try when a run diverges, in the algorithm's own flags.
     divergence_hint: str = "lower learning rates"
     # The `dva train --GROUP.FIELD` flags that override its config (every field but `defining`);
@@ -124,7 +124,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         dagger_preset,
         {},
         lambda config: "warp",
-        train_teacher_if_missing,
+        teacher_algo="shac",
         divergence_hint="a lower learning rate (--dagger.lr)",
         flag_group="dagger",
         flag_aliases={"teacher": "--teacher"},
@@ -205,12 +205,19 @@ def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int, mesh
     return SoftRenderer(task, num_envs, image_size)
 
 
-def build_agent(task_name: str, algo: str, config: Any, physics: str | None = None, mesh=None) -> Agent:
+def build_agent(
+    task_name: str, algo: str, config: Any, physics: str | None = None, mesh=None, teacher: TeacherRun | None = None
+) -> Agent:
     """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
-    as long as the agent) and the agent; ``mesh``: the devices its environments split over."""
+    as long as the agent) and the agent; ``mesh``: the devices its environments split over;
+    ``teacher``: the run it learns from, for an algorithm with a ``teacher_algo``
+    (:func:`dva.training.load_teacher` loads one)."""
     entry = check_algo(algo)
+    if (entry.teacher_algo is None) != (teacher is None):
+        needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"
+        raise ValueError(f"teacher = {teacher and teacher.algo!r}: {algo} takes {needs}")
     task = make_task(task_name, physics)
     renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size, mesh)
     action_repeat = getattr(config, "action_repeat", 1)  # configs without one act every control step
     env = PixelObservations(task, config.num_envs, renderer, config.frame_stack, action_repeat)
-    return entry.make_agent(env, config)
+    return entry.make_agent(env, config) if teacher is None else entry.make_agent(env, config, teacher)

@@ -3,7 +3,7 @@ serves them all: budget, progress bar, logs, evaluation, checkpoints, resume, di
 
 from __future__ import annotations
 
-from typing import Any, Protocol, TypeVar, runtime_checkable
+from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 import jax
 
@@ -66,3 +66,13 @@ class RecurrentAgent(Protocol):
 
     def act_recurrent(self, policy: Any, observation: Observation, memory: Any) -> tuple[jax.Array, Any]:
         """The deterministic action for a batch of observations, and the updated memory."""
+
+
+class TeacherRun(NamedTuple):
+    """A finished run another agent learns from (DAgger's teacher): its algorithm, agent, policy
+    parameters, and the (seconds, env steps) it cost, which the learner's curve continues from."""
+
+    algo: str
+    agent: Agent
+    policy: Any
+    cost: tuple[float, int]

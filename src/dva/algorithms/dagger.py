@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.algorithms.base import TeacherRun
 from dva.envs import Observation, PixelObservations
 from dva.networks import Actor
 from dva.tasks import EnvState
@@ -214,36 +215,10 @@ class DAgger:
         return f"behaviour-cloning loss {float(metrics['bc_loss']):.3g} is NaN or infinite"
 
 
-def make_dagger(env: PixelObservations, config: DAggerConfig) -> DAgger:
-    """The student, with the teacher loaded from ``config.teacher`` (a SHAC run on state)."""
-    from dva.training import load_run, read_progress  # the training module builds agents itself
-
-    if config.teacher is None:
-        raise ValueError("DAgger needs a teacher run directory (config.teacher)")
-    spec, teacher, teacher_state = load_run(config.teacher)
-    if getattr(teacher.config, "observation", None) != "state":  # SHAC or DPG on the state
+def make_dagger(env: PixelObservations, config: DAggerConfig, teacher: TeacherRun) -> DAgger:
+    """The student of ``teacher``, which must act on the state (SHAC or DPG on the state)."""
+    if getattr(teacher.agent.config, "observation", None) != "state":
         raise ValueError(
-            f"the teacher {config.teacher} is a {spec.algo!r} run; DAgger needs a teacher on the state (--algo shac)"
+            f"the teacher {config.teacher} is a {teacher.algo!r} run; DAgger needs a teacher on the state (--algo shac)"
         )
-    last = read_progress(config.teacher)[-1]
-    return DAgger(
-        env, config, teacher, teacher.policy(teacher_state), (float(last["wall_time"]), int(last["env_steps"]))
-    )
-
-
-def train_teacher_if_missing(config: DAggerConfig, task: str, preset: str, seed: int, run_dir, physics) -> DAggerConfig:
-    """Without a teacher, train SHAC on the state for ``teacher_minutes`` into ``run_dir/teacher``."""
-    from dva.training import train
-
-    if config.teacher is not None:
-        return config
-    teacher_dir = train(
-        task,
-        "shac",
-        preset=preset,
-        seed=seed,
-        minutes=config.teacher_minutes,
-        run_dir=run_dir / "teacher",
-        physics=physics,
-    )
-    return dataclasses.replace(config, teacher=str(teacher_dir))
+    return DAgger(env, config, teacher.agent, teacher.policy, teacher.cost)
