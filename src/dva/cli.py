@@ -110,11 +110,11 @@ OVERRIDES = {
 class TrainOptions:
     """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full), DPG on state, visual
     SHAC (pixels from the differentiable renderer, full gradient), or a baseline (DrQ-v2, CURL,
-    state-to-visual DAgger, DreamerV3)."""
+    state-to-visual DAgger, DreamerV3 from pixels or the state)."""
 
     task: str = "cartpole_swingup"
     algo: AlgoName = "dva"
-    """dva | shac | dpg-state | shac-pixels (visual SHAC) | drqv2 | curl | dagger | dreamerv3"""
+    """The algorithm (the docs' Algorithms page describes each)."""
     preset: PresetName = "cpu"
     """paper (the paper's hyperparameters) | cpu (fewer envs, smaller images)"""
     seed: int = 0

@@ -21,7 +21,9 @@ from flax import struct
 class Step(struct.PyTreeNode):
     """What one env step stores (leading axes: envs, or batch × sequence when sampled)."""
 
-    frame: jax.Array  # (H, W, 3) uint8: the newest frame of the observation the action was taken in
+    # the newest frame (H, W, 3) uint8 of the observation the action was taken in (a state-observing
+    # agent's: its state vector)
+    frame: jax.Array
     first: jax.Array  # bool: that observation starts an episode
     action: jax.Array  # (A,)
     reward: jax.Array  # reward of the step

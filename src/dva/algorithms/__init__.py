@@ -55,6 +55,11 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
+def _dreamer_renderer(config: DreamerV3Config) -> RendererKind:
+    return "warp" if config.observation == "pixels" else None
+
+
+DREAMER_HINT = "lower learning rates (--dreamerv3.model-lr, --dreamerv3.actor-lr, --dreamerv3.critic-lr)"
 SHAC_HINT = "a lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip"
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm(
@@ -134,9 +139,19 @@ ALGORITHMS: dict[str, Algorithm] = {
         DreamerV3Config,
         DreamerV3,
         dreamerv3_preset,
-        dict(frame_stack=1),
-        lambda config: "warp",
-        divergence_hint="lower learning rates (--dreamerv3.model-lr, --dreamerv3.actor-lr, --dreamerv3.critic-lr)",
+        dict(observation="pixels", frame_stack=1),
+        _dreamer_renderer,
+        divergence_hint=DREAMER_HINT,
+        flag_group="dreamerv3",
+    ),
+    "dreamerv3-state": Algorithm(
+        "DreamerV3 on the state: the same agent with an MLP encoder and decoder of the state vector",
+        DreamerV3Config,
+        DreamerV3,
+        dreamerv3_preset,
+        dict(observation="state", frame_stack=1),
+        _dreamer_renderer,
+        divergence_hint=DREAMER_HINT,
         flag_group="dreamerv3",
     ),
 }

@@ -1,4 +1,6 @@
-"""DreamerV3 (Hafner et al. 2023) from pixels — the paper's model-based visual baseline.
+"""DreamerV3 (Hafner et al. 2023) from pixels — the paper's model-based visual baseline — or
+from the state vector (``observation="state"``: its MLP encoder and decoder on the ``symlog`` of
+the state, as the reference runs proprioceptive tasks).
 
 One iteration collects ``collect_steps`` steps of every env with the actor acting on the RSSM's
 posterior state (stored as single frames in a sequence replay), then makes ``updates`` updates,
@@ -6,7 +8,8 @@ each on ``batch_size`` replayed sequences of ``batch_length`` steps (``train_rat
 steps per policy step):
 
 * **world model**: the RSSM observes the sequence (its state reset at episode starts); loss =
-  image reconstruction (squared error summed over pixels) + two-hot symlog reward + continuation
+  reconstruction (squared error summed over pixels, or over the symlog state's entries) +
+  two-hot symlog reward + continuation
   (Bernoulli) + 0.5 · dynamics KL + 0.1 · representation KL, each KL with 1 nat free;
 * **imagination**: from every posterior state, ``horizon`` steps of the prior with actions
   sampled from the actor, which reads each state through a stop-gradient, the model frozen;
@@ -40,15 +43,16 @@ from dva.algorithms.dreamer_math import (
     kl_balance_losses,
     lambda_returns,
     normalized_advantage,
+    symlog,
     symlog_bins,
     twohot,
     twohot_decode,
     unimix_logits,
     update_return_scale,
 )
-from dva.algorithms.off_policy import collect_into_replay
+from dva.algorithms.off_policy import collect_into_replay, newest_frame
 from dva.envs import Observation, PixelObservations
-from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, scale_pixels
+from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, MLPEncoder, scale_pixels
 from dva.replay import SequenceReplay, Step
 from dva.tasks import EnvState
 
@@ -57,6 +61,7 @@ from dva.tasks import EnvState
 class DreamerV3Config:
     """Hyperparameters (the paper's DreamerV3 settings; the network sizes of the reference's "S" model)."""
 
+    observation: Literal["pixels", "state"] = "pixels"  # what the world model encodes and reconstructs
     num_envs: int = 4
     image_size: int = 64
     frame_stack: int = 1  # the RSSM remembers: one frame per observation
@@ -105,7 +110,9 @@ class DreamerV3Config:
             raise ValueError(
                 f"frame_stack = {self.frame_stack} is not allowed for DreamerV3; use 1 (the RSSM remembers)"
             )
-        if self.image_size % 16:
+        if self.observation not in ("pixels", "state"):
+            raise ValueError(f"observation = {self.observation!r} is not allowed; use 'pixels' or 'state'")
+        if self.observation == "pixels" and self.image_size % 16:
             raise ValueError(
                 f"image_size = {self.image_size} is not allowed for DreamerV3's 4 stride-2 "
                 "convolutions; use a multiple of 16 (e.g. 48, 64)"
@@ -156,9 +163,19 @@ class DreamerState(struct.PyTreeNode):
 
 
 def sample_onehot(logits: jax.Array, key: jax.Array) -> jax.Array:
-    """A one-hot sample of each categorical, with the straight-through gradient of its probabilities."""
+    """A one-hot sample of each categorical, with the straight-through gradient of its probabilities.
+
+    Sampled by inverting the cumulative distribution: one uniform number per categorical, the
+    cumulative sums as a matmul, the class as a count. ``jax.random.categorical`` draws a Gumbel
+    number per class and takes an argmax, which XLA's CPU backend runs slowly: on (256, 32, 32)
+    logits the whole sample took 10 ms that way and 1 ms this way (``benchmarks/dreamer_update.py``).
+    """
+    classes = logits.shape[-1]
     probs = jax.nn.softmax(logits, -1)
-    sample = jax.nn.one_hot(jax.random.categorical(key, logits), logits.shape[-1])
+    cumulative = probs @ jnp.triu(jnp.ones((classes, classes), probs.dtype))
+    uniform = jax.random.uniform(key, probs.shape[:-1] + (1,), probs.dtype)
+    index = jnp.minimum(jnp.sum(cumulative < uniform, -1, keepdims=True), classes - 1)
+    sample = (jnp.arange(classes) == index).astype(probs.dtype)
     return sample + probs - jax.lax.stop_gradient(probs)
 
 
@@ -178,7 +195,7 @@ class DreamerV3:
     batch_fields = ()  # one device: its replay is not split
     metric_names = (
         "model_loss",
-        "image_loss",
+        "reconstruction_loss",
         "reward_loss",
         "kl",
         "actor_loss",
@@ -188,12 +205,20 @@ class DreamerV3:
     )
 
     def __init__(self, env: PixelObservations, config: DreamerV3Config) -> None:
-        if not env.has_pixels or env.num_envs != config.num_envs or env.frame_stack != 1:
-            raise ValueError(f"DreamerV3 needs an env wrapper that renders {config.num_envs} envs, one frame each")
+        self.pixels = config.observation == "pixels"
+        if env.num_envs != config.num_envs or env.frame_stack != 1 or env.has_pixels != self.pixels:
+            seen = "renders one frame each" if self.pixels else "renders nothing"
+            raise ValueError(
+                f"DreamerV3 on {config.observation} needs an env wrapper of {config.num_envs} envs that {seen}"
+            )
         self.env, self.task, self.config = env, env.task, config
         cfg, action_dim = config, env.task.action_dim
-        self.encoder = ConvEncoder(cfg.cnn_depth)
-        self.decoder = ConvDecoder(cfg.cnn_depth, cfg.image_size)
+        if self.pixels:
+            self.encoder, self.decoder = ConvEncoder(cfg.cnn_depth), ConvDecoder(cfg.cnn_depth, cfg.image_size)
+        else:
+            self.encoder = MLPEncoder(cfg.units, cfg.layers)
+            self.decoder = DreamerMLP(cfg.units, cfg.layers, env.task.obs_dim)
+        self.observation_key = config.observation
         self.rssm = RSSM(cfg.deter, cfg.stoch, cfg.classes, cfg.units)
         self.reward_head = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
         self.cont_head = DreamerMLP(cfg.units, cfg.layers, 1)
@@ -237,6 +262,17 @@ class DreamerV3:
         return 0.0, self.seed_rounds * self.config.num_envs * self.config.action_repeat
 
     # ---- the world model ----------------------------------------------------------------------
+    def observed(self, env: EnvState) -> jax.Array:
+        """What the model sees of each env (and the replay stores): the frame, or the state."""
+        return newest_frame(env) if self.pixels else env.obs
+
+    def encode(self, model: dict, observed: jax.Array) -> jax.Array:
+        return self.encoder.apply(model["encoder"], observed if self.pixels else symlog(observed))
+
+    def reconstruction_target(self, observed: jax.Array) -> jax.Array:
+        """What the decoder predicts: pixels in the encoder's scale, or the symlog state."""
+        return scale_pixels(observed) if self.pixels else symlog(observed)
+
     def prior(self, model: dict, deter: jax.Array) -> jax.Array:
         return unimix_logits(self.rssm.apply(model["rssm"], deter, method=RSSM.prior), self.config.unimix)
 
@@ -256,12 +292,14 @@ class DreamerV3:
         deter = jnp.where(restart[:, None], 0.0, arrived)
         return arrived, deter, self.posterior(model, deter, embedding)
 
-    def world_model_loss(self, model: dict, steps: Step, key: jax.Array):
-        """The world-model loss on replayed sequences (B, T, …); also returns the posterior states
-        (imagination starts there) and the loss terms."""
+    def observe_sequences(self, model: dict, steps: Step, key: jax.Array):
+        """The RSSM along replayed sequences (B, T, …), each from a fresh state: per step the
+        posterior state ``(h, z)``, the prior's and the posterior's logits of ``z``, and the
+        features of the state the previous action led to (what the reward and continuation heads
+        read)."""
         cfg = self.config
         batch, length = steps.first.shape
-        embedding = self.encoder.apply(model["encoder"], steps.frame)
+        embedding = self.encode(model, steps.frame)
         restart = steps.first.at[:, 0].set(True)  # every sequence starts from a fresh state
         prev_action = jnp.concatenate([jnp.zeros_like(steps.action[:, :1]), steps.action[:, :-1]], axis=1)
 
@@ -283,10 +321,20 @@ class DreamerV3:
         initial = (jnp.zeros((batch, cfg.deter)), jnp.zeros((batch, cfg.stoch, cfg.classes)))
         inputs = (time_major(embedding), time_major(restart), time_major(prev_action), jax.random.split(key, length))
         _, (deter, stoch, prior, posterior, arrived) = jax.lax.scan(step, initial, inputs)
-        deter, stoch, prior, posterior, arrived = map(time_major, (deter, stoch, prior, posterior, arrived))
+        return tuple(map(time_major, (deter, stoch, prior, posterior, arrived)))
 
-        target = scale_pixels(steps.frame)
-        image_loss = jnp.sum((self.decoder.apply(model["decoder"], features(deter, stoch)) - target) ** 2, (-3, -2, -1))
+    def predicted_reward(self, model: dict, arrived: jax.Array) -> jax.Array:
+        """The reward head's prediction for the steps that led to ``arrived`` (features)."""
+        return twohot_decode(self.reward_head.apply(model["reward"], arrived), self.bins)
+
+    def world_model_loss(self, model: dict, steps: Step, key: jax.Array):
+        """The world-model loss on replayed sequences (B, T, …); also returns the posterior states
+        (imagination starts there) and the loss terms."""
+        cfg = self.config
+        batch, length = steps.first.shape
+        deter, stoch, prior, posterior, arrived = self.observe_sequences(model, steps, key)
+        error = self.decoder.apply(model["decoder"], features(deter, stoch)) - self.reconstruction_target(steps.frame)
+        reconstruction_loss = jnp.sum(error.reshape(batch, length, -1) ** 2, -1)
         dynamics, representation = kl_balance_losses(posterior, prior, cfg.free_nats)
         # the reward and continuation of step t are read from the state it led to (position t + 1)
         reward_logits = self.reward_head.apply(model["reward"], arrived[:, 1:])
@@ -294,9 +342,13 @@ class DreamerV3:
         cont_logit = self.cont_head.apply(model["cont"], arrived[:, 1:])[..., 0]
         cont_loss = optax.sigmoid_binary_cross_entropy(cont_logit, 1.0 - steps.terminated[:, :-1])
         loss = jnp.mean(
-            image_loss + cfg.dynamics_scale * dynamics + cfg.representation_scale * representation
+            reconstruction_loss + cfg.dynamics_scale * dynamics + cfg.representation_scale * representation
         ) + jnp.mean(reward_loss + cont_loss)
-        terms = {"image_loss": jnp.mean(image_loss), "reward_loss": jnp.mean(reward_loss), "kl": jnp.mean(dynamics)}
+        terms = {
+            "reconstruction_loss": jnp.mean(reconstruction_loss),
+            "reward_loss": jnp.mean(reward_loss),
+            "kl": jnp.mean(dynamics),
+        }
         return loss, ((deter, stoch), terms)
 
     # ---- acting -------------------------------------------------------------------------------
@@ -315,10 +367,10 @@ class DreamerV3:
             restart=jnp.ones(num_envs, bool),
         )
 
-    def step_latent(self, model: dict, latent: Latent, pixels: jax.Array, key: jax.Array | None) -> Latent:
-        """The state after seeing ``pixels`` (one frame per env): a posterior sample, or its mode
-        without a ``key``."""
-        _, deter, posterior = self.observe(model, latent, self.encoder.apply(model["encoder"], pixels), latent.restart)
+    def step_latent(self, model: dict, latent: Latent, observed: jax.Array, key: jax.Array | None) -> Latent:
+        """The state after seeing ``observed`` (one frame, or the state, per env): a posterior
+        sample, or its mode without a ``key``."""
+        _, deter, posterior = self.observe(model, latent, self.encode(model, observed), latent.restart)
         if key is None:
             stoch = jax.nn.one_hot(jnp.argmax(posterior, -1), self.config.classes)
         else:
@@ -327,13 +379,14 @@ class DreamerV3:
 
     def act_recurrent(self, policy: dict, observation: Observation, memory: Latent) -> tuple[jax.Array, Latent]:
         """The actor's mean action on the posterior's mode; the memory moves on by one step."""
-        latent = self.step_latent(policy["model"], memory, observation["pixels"], None)
+        latent = self.step_latent(policy["model"], memory, observation[self.observation_key], None)
         action, _ = self.action_distribution(policy["actor"], features(latent.deter, latent.stoch))
         return action, latent.replace(action=action, restart=jnp.zeros_like(latent.restart))
 
     def act(self, policy: dict, observation: Observation) -> jax.Array:
         """The action from a fresh memory (as at an episode's first step)."""
-        return self.act_recurrent(policy, observation, self.initial_memory(len(observation["pixels"])))[0]
+        memory = self.initial_memory(len(observation[self.observation_key]))
+        return self.act_recurrent(policy, observation, memory)[0]
 
     def policy(self, state: DreamerState) -> dict:
         """The encoder and RSSM (the posterior) and the actor."""
@@ -344,7 +397,8 @@ class DreamerV3:
     def imagine(self, model: dict, actor: dict, deter: jax.Array, stoch: jax.Array, key: jax.Array):
         """``horizon`` prior steps from each start, actions sampled from the actor (reparameterised:
         the samples, and the states they lead to, carry the actor's gradient through the frozen
-        model). Returns the features of states 0…H (H + 1, M, F) and the actions (H, M, A)."""
+        model). Returns the features of states 0…H (H + 1, M, F), the actions (H, M, A) and the
+        actor's means and stds they were drawn with (H, M, A; their gradient reaches only the actor)."""
 
         def step(carry, key_t):
             deter, stoch = carry
@@ -356,12 +410,12 @@ class DreamerV3:
             action = mean + std * jax.random.normal(action_key, mean.shape)
             deter = self.transition(model, deter, stoch, jnp.clip(action, -1.0, 1.0))
             stoch = sample_onehot(self.prior(model, deter), stoch_key)
-            return (deter, stoch), (feature, action)
+            return (deter, stoch), (feature, action, mean, std)
 
-        (deter, stoch), (feats, actions) = jax.lax.scan(
+        (deter, stoch), (feats, actions, mean, std) = jax.lax.scan(
             step, (deter, stoch), jax.random.split(key, self.config.horizon)
         )
-        return jnp.concatenate([feats, features(deter, stoch)[None]]), actions
+        return jnp.concatenate([feats, features(deter, stoch)[None]]), actions, mean, std
 
     def actor_loss(
         self,
@@ -377,7 +431,7 @@ class DreamerV3:
         critic frozen. Also returns what the critic learns from — the features, λ-returns and
         weights, without gradient — the updated return scale and the actor's mean std."""
         cfg = self.config
-        feats, actions = self.imagine(model, actor, deter, stoch, key)
+        feats, actions, mean, std = self.imagine(model, actor, deter, stoch, key)
         reward = twohot_decode(self.reward_head.apply(model["reward"], feats[1:]), self.bins)
         # the continuation's mode, 1 or 0 (the reference's): no gradient, so the actor cannot raise
         # its return by nudging a confident continuation probability that the values multiply
@@ -386,8 +440,9 @@ class DreamerV3:
         returns = lambda_returns(reward, value, cont, cfg.gamma, cfg.lam)  # (H, M)
         weight = jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0)  # step t reached
         scale = update_return_scale(return_scale, jax.lax.stop_gradient(returns), cfg.return_decay)
+        # the policy's mean and std at the imagined states, read without their gradient: as the
+        # actor's own output on sg(features), which imagine already computed
         feats, actions = jax.lax.stop_gradient(feats), jax.lax.stop_gradient(actions)
-        mean, std = self.action_distribution(actor, feats[:-1])
         if cfg.actor_gradient == "backprop":  # the advantage's own gradient, through the model
             objective = normalized_advantage(returns, value[:-1], scale)
         else:  # REINFORCE: the log-probability of the sampled actions times the advantage
@@ -456,17 +511,18 @@ class DreamerV3:
         env_key, seed_key, key, *net_keys = jax.random.split(key, 10)
         env = self.env.reset(env_key)
         latent = self.initial_memory(cfg.num_envs)
-        embedding = self.encoder.init(net_keys[0], env.pixels[:1])
+        observed = self.observed(env)[:1]
+        encoder = self.encoder.init(net_keys[0], observed if self.pixels else symlog(observed))
         feature = features(latent.deter[:1], latent.stoch[:1])
         model = {
-            "encoder": embedding,
+            "encoder": encoder,
             "decoder": self.decoder.init(net_keys[1], feature),
             "rssm": self.rssm.init(
                 net_keys[2],
                 latent.deter[:1],
                 latent.stoch[:1],
                 latent.action[:1],
-                self.encoder.apply(embedding, env.pixels[:1]),
+                self.encode({"encoder": encoder}, observed),
             ),
             "reward": self.reward_head.init(net_keys[3], feature),
             "cont": self.cont_head.init(net_keys[4], feature),
@@ -477,7 +533,7 @@ class DreamerV3:
             "critic": self.critic.init(net_keys[6], feature),
         }
         example = Step(
-            frame=env.pixels[0],
+            frame=self.observed(env)[0],
             first=jnp.ones((), bool),
             action=jnp.zeros(action_dim),
             reward=jnp.zeros(()),
@@ -500,7 +556,7 @@ class DreamerV3:
 
         def seed_round(state, round_key):
             uniform = jax.random.uniform(round_key, (cfg.num_envs, action_dim), minval=-1.0, maxval=1.0)
-            return collect_into_replay(self.env, self.replay, state, uniform)[0], None
+            return collect_into_replay(self.env, self.replay, state, uniform, stored=self.observed)[0], None
 
         state = jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
         return state.replace(latent=latent)  # the actor starts from a fresh memory
@@ -511,10 +567,10 @@ class DreamerV3:
 
         def collect_step(state, step_key):
             latent_key, action_key = jax.random.split(step_key)
-            latent = self.step_latent(state.params["model"], state.latent, state.env.pixels, latent_key)
+            latent = self.step_latent(state.params["model"], state.latent, self.observed(state.env), latent_key)
             mean, std = self.action_distribution(state.params["actor"], features(latent.deter, latent.stoch))
             action = jnp.clip(mean + std * jax.random.normal(action_key, mean.shape), -1.0, 1.0)
-            state, finished = collect_into_replay(self.env, self.replay, state, action)
+            state, finished = collect_into_replay(self.env, self.replay, state, action, stored=self.observed)
             state = state.replace(latent=latent.replace(action=action, restart=state.first))
             return state, (finished, state.first)
 

@@ -62,18 +62,28 @@ class OffPolicyState(struct.PyTreeNode):
     iteration: jax.Array
 
 
+def newest_frame(env: EnvState) -> jax.Array:
+    """What a pixel agent's replay stores of an observation: its newest frame."""
+    return env.pixels[..., -3:]
+
+
 def collect_into_replay(
-    env: PixelObservations, replay: SequenceReplay, state, action: jax.Array, reward_scale: float = 1.0
+    env: PixelObservations,
+    replay: SequenceReplay,
+    state,
+    action: jax.Array,
+    reward_scale: float = 1.0,
+    stored=newest_frame,
 ):
-    """One step of every env with ``action``, stored in ``replay`` (the newest frame of the
-    observation the action was taken in, the reward × ``reward_scale``). ``state`` is any agent
+    """One step of every env with ``action``, stored in ``replay`` (``stored`` of the observation
+    the action was taken in, the reward × ``reward_scale``). ``state`` is any agent
     state with ``env``, ``first``, ``replay`` and ``episode_return`` fields; returns it updated and
     the returns of the episodes that just ended (0 elsewhere; unscaled)."""
     next_env = env.step(state.env, action)
     replay_state = replay.add(
         state.replay,
         Step(
-            frame=state.env.pixels[..., -3:],
+            frame=stored(state.env),
             first=state.first,
             action=action,
             reward=reward_scale * next_env.reward,

@@ -1,5 +1,5 @@
-"""DreamerV3's networks: conv encoder and decoder (strided 4×4 convolutions as 2×2 ones over
-2×2 pixel blocks), the RSSM and the MLP heads."""
+"""DreamerV3's networks: the state vector's MLP encoder, the conv encoder and decoder (strided
+4×4 convolutions as 2×2 ones over 2×2 pixel blocks), the RSSM and the MLP heads."""
 
 from __future__ import annotations
 
@@ -31,6 +31,20 @@ class DreamerMLP(nn.Module):
             x = norm_silu(x, self.units)
         init = nn.initializers.zeros if self.zero_output else nn.initializers.lecun_normal()
         return nn.Dense(self.out, kernel_init=init)(x)
+
+
+class MLPEncoder(nn.Module):
+    """DreamerV3's encoder of a state vector (which the agent has ``symlog``-squashed):
+    ``layers`` × (Dense → LayerNorm → SiLU)."""
+
+    units: int
+    layers: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for _ in range(self.layers):
+            x = norm_silu(x, self.units)
+        return x
 
 
 def _space_to_depth(x: jax.Array) -> jax.Array:
