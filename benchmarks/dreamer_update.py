@@ -1,10 +1,16 @@
-"""Seconds per DreamerV3 update (world model, imagination, actor and critic) and per pass of its
-conv encoder + decoder alone, with the 4×4 stride-2 convolutions as 2×2 convolutions over 2×2
-pixel blocks (ours, the default) against XLA's strided and input-dilated convolutions (what Flax's
-``nn.Conv`` / ``nn.ConvTranspose`` run), and the ratio. CPU by default; the same script uses a
-GPU when JAX sees one.
+"""Where one DreamerV3 update's time goes, against the machine's compute bound.
 
-    python benchmarks/dreamer_update.py [--task cartpole_balance] [--preset cpu] [--repeats 5]
+For each piece of one update (the world model's forward + backward and, within it, the encoder,
+the decoder and the RSSM along the sequences; imagination; the actor's forward + backward through
+it; the whole update) it prints the best time of ``--repeats`` runs, XLA's count of its floating
+point operations, the rate that makes, and the time those operations would take at the peak rate
+of a large matmul on this machine (the compute bound). Also: the one-hot sampler the RSSM draws
+with against ``jax.random.categorical``, and, with ``--convolutions xla``, the same table with
+XLA's strided and input-dilated convolutions in place of the 2×2 block ones (the default). CPU by
+default; the same script uses a GPU when JAX sees one.
+
+    python benchmarks/dreamer_update.py [--algo dreamerv3 dreamerv3-state] [--task cartpole_balance]
+                                        [--preset cpu] [--repeats 5] [--convolutions blocks|xla]
 """
 
 from __future__ import annotations
@@ -40,75 +46,112 @@ def convolutions(form: str):
         networks.strided_conv4, networks.strided_conv4_transpose = ours
 
 
-def measure(task: str, preset: str, form: str, repeats: int) -> dict[str, float]:
+def profile(fn, *args, repeats: int) -> tuple[float, float]:
+    """(best seconds, GFLOP by XLA's cost analysis) of ``jax.jit(fn)(*args)``."""
+    import jax
+
+    from dva.analysis.bench import timed
+
+    compiled = jax.jit(fn).lower(*args).compile()
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    return timed(compiled, *args, repeats=repeats)[1], float(cost.get("flops", 0.0)) / 1e9
+
+
+def peak_gflops(repeats: int) -> float:
+    """The rate of a 2048² float32 matmul: what the machine's BLAS reaches."""
+    import jax
+    import jax.numpy as jnp
+
+    a = jax.random.normal(jax.random.PRNGKey(0), (2048, 2048))
+    seconds, gflop = profile(jnp.matmul, a, a, repeats=repeats)
+    return gflop / seconds
+
+
+def update_pieces(algo: str, task: str, preset: str):
+    """(name, function, arguments) of each piece of one update of ``algo``'s CPU-preset agent."""
     import jax
     import jax.numpy as jnp
 
     from dva.algorithms import build_agent, make_config
-    from dva.analysis.bench import timed
-    from dva.networks import scale_pixels
     from dva.training import initial_state
 
-    config = make_config(task, "dreamerv3", preset)
-    agent = build_agent(task, "dreamerv3", config)
-    with convolutions(form):
-        state = jax.jit(functools.partial(initial_state, agent))(jax.random.PRNGKey(0))
-        model = state.params["model"]
-        frames = jax.random.randint(
-            jax.random.PRNGKey(1),
-            (config.batch_size * config.batch_length, config.image_size, config.image_size, 3),
-            0,
-            256,
-        ).astype(jnp.uint8)
-        features = jax.random.normal(jax.random.PRNGKey(2), (len(frames), config.deter + config.stoch * config.classes))
+    config = make_config(task, algo, preset)
+    agent = build_agent(task, algo, config)
+    state = jax.jit(functools.partial(initial_state, agent))(jax.random.PRNGKey(0))
+    key, params = jax.random.PRNGKey(1), state.params
+    model, actor, critic = params["model"], params["actor"], params["critic"]
+    steps = jax.jit(agent.replay.sample_sequences)(state.replay, key)
+    deter, stoch, *_ = jax.jit(agent.observe_sequences)(model, steps, key)
+    starts = deter.reshape(-1, deter.shape[-1]), stoch.reshape((-1,) + stoch.shape[2:])
+    feats = jnp.concatenate([deter, stoch.reshape(stoch.shape[:2] + (-1,))], -1)
+    squares = lambda tree: sum(jnp.sum(x**2) for x in jax.tree.leaves(tree))
+    actor_loss = lambda a: agent.actor_loss(a, model, critic, state.return_scale, *starts, key)[0]
+    return [
+        ("world model, forward + backward", jax.grad(lambda m: agent.world_model_loss(m, steps, key)[0]), (model,)),
+        ("  encoder", jax.grad(lambda m: squares(agent.encode(m, steps.frame))), (model,)),
+        ("  decoder", jax.grad(lambda d: squares(agent.decoder.apply(d, feats))), (model["decoder"],)),
+        ("  RSSM along the sequences", jax.grad(lambda m: squares(agent.observe_sequences(m, steps, key))), (model,)),
+        ("imagination, forward", lambda a: agent.imagine(model, a, *starts, key), (actor,)),
+        ("actor, forward + backward", jax.grad(actor_loss), (actor,)),
+        ("one update", agent.update, (state, key)),
+    ]
 
-        def reconstruction_loss(encoder, decoder):  # the encoder and decoder passes one update makes
-            embedding = agent.encoder.apply(encoder, frames)
-            reconstruction = agent.decoder.apply(decoder, features)
-            return jnp.sum(embedding**2) + jnp.sum((reconstruction - scale_pixels(frames)) ** 2)
 
-        conv_grad = jax.jit(jax.grad(reconstruction_loss, argnums=(0, 1)))
-        compile_conv, conv_s, _ = timed(conv_grad, model["encoder"], model["decoder"], repeats=repeats)
-        update = jax.jit(agent.update)
-        compile_update, update_s, _ = timed(update, state, jax.random.PRNGKey(3), repeats=repeats)
-    return {"update_s": update_s, "conv_s": conv_s, "compile_s": compile_conv + compile_update}
+def sampler_times(repeats: int) -> tuple[float, float]:
+    """Seconds of a one-hot sample of (256, 32, 32) logits with straight-through gradient: the
+    inverse-CDF sampler against one built on ``jax.random.categorical``."""
+    import jax
+
+    from dva.algorithms.dreamerv3 import sample_onehot
+
+    def categorical(logits, key):
+        probs = jax.nn.softmax(logits, -1)
+        sample = jax.nn.one_hot(jax.random.categorical(key, logits), logits.shape[-1])
+        return sample + probs - jax.lax.stop_gradient(probs)
+
+    logits, key = jax.random.normal(jax.random.PRNGKey(0), (256, 32, 32)), jax.random.PRNGKey(1)
+    return tuple(profile(fn, logits, key, repeats=repeats)[0] for fn in (sample_onehot, categorical))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--algo", nargs="+", default=["dreamerv3", "dreamerv3-state"])
     parser.add_argument("--task", default="cartpole_balance")
     parser.add_argument("--preset", default="cpu", choices=["cpu", "paper"])
     parser.add_argument("--repeats", type=int, default=5, help="timed runs after the compile; the best is kept")
+    parser.add_argument("--convolutions", default="blocks", choices=["blocks", "xla"])
     args = parser.parse_args()
 
-    from dva.algorithms import make_config
     from dva.analysis.bench import machine_description, markdown_table
 
-    config = make_config(args.task, "dreamerv3", args.preset)
-    print(
-        f"DreamerV3 on {args.task}, preset {args.preset}: {config.batch_size} × {config.batch_length} replayed "
-        f"steps of {config.image_size}² per update, CNN depth {config.cnn_depth}, deter {config.deter}"
-    )
     print(machine_description())
-    times = {form: measure(args.task, args.preset, form, args.repeats) for form in ("xla", "blocks")}
-    rows = [
-        (
-            label,
-            f"{times['xla'][key]:.3f}",
-            f"{times['blocks'][key]:.3f}",
-            f"{times['xla'][key] / times['blocks'][key]:.2f}×",
-        )
-        for key, label in (
-            ("update_s", "one update (s)"),
-            ("conv_s", "encoder + decoder, forward + backward (s)"),
-            ("compile_s", "compile + first run (s)"),
-        )
-    ]
+    peak = peak_gflops(args.repeats)
+    print(f"compute bound: a 2048² matmul runs at {peak:.0f} GFLOP/s")
+    ours, categorical = sampler_times(args.repeats)
     print(
-        markdown_table(
-            ["best of the timed runs", "XLA convolutions", "2×2 block convolutions (default)", "speed-up"], rows
-        )
+        f"one-hot sample of (256, 32, 32): inverse CDF {1e3 * ours:.2f} ms, "
+        f"jax.random.categorical {1e3 * categorical:.2f} ms ({categorical / ours:.1f}×)"
     )
+    for algo in args.algo:
+        with convolutions(args.convolutions):
+            rows = []
+            for name, fn, fn_args in update_pieces(algo, args.task, args.preset):
+                seconds, gflop = profile(fn, *fn_args, repeats=args.repeats)
+                bound = gflop / peak
+                rows.append(
+                    (
+                        name,
+                        f"{1e3 * seconds:.1f}",
+                        f"{gflop:.2f}",
+                        f"{gflop / seconds:.1f}",
+                        f"{1e3 * bound:.1f}",
+                        f"{seconds / bound:.1f}×",
+                    )
+                )
+        print(f"\n{algo} on {args.task}, preset {args.preset}, {args.convolutions} convolutions")
+        header = ["piece", "ms", "GFLOP", "GFLOP/s", "ms at the bound", "time / bound"]
+        print(markdown_table(header, rows))
 
 
 if __name__ == "__main__":
