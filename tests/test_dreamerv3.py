@@ -109,14 +109,15 @@ def test_policy_memory_carries_the_past_and_forgets_it_at_a_restart(dreamer_run)
     policy, observation = agent.policy(state), agent.env.observe(state.env)
     act = jax.jit(agent.act_recurrent)
     fresh = agent.initial_memory(agent.config.num_envs)
-    first_action, memory = act(policy, observation, fresh)
+    key = jax.random.PRNGKey(0)  # the latent is sampled: the same key, the same sample
+    first_action, memory = act(policy, observation, fresh, key)
     np.testing.assert_allclose(first_action, jax.jit(agent.act)(policy, observation), atol=1e-6)
     assert first_action.shape == (2, 1) and np.all(np.abs(np.asarray(first_action)) <= 1.0)
     # the same image seen again, now after a step: a different latent state, a different action
-    second_action, memory = act(policy, observation, memory)
+    second_action, memory = act(policy, observation, memory, key)
     assert np.abs(np.asarray(second_action - first_action)).max() > 1e-5
     # a restart forgets everything before it
-    restarted, _ = act(policy, observation, memory.replace(restart=jnp.ones(2, bool)))
+    restarted, _ = act(policy, observation, memory.replace(restart=jnp.ones(2, bool)), key)
     np.testing.assert_allclose(restarted, first_action, atol=1e-6)
 
 

@@ -147,7 +147,7 @@ def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
     if isinstance(agent, RecurrentAgent):
         return evaluate_policy(
             agent.env,
-            lambda observation, memory, _key: agent.act_recurrent(policy, observation, memory),
+            lambda observation, memory, key: agent.act_recurrent(policy, observation, memory, key),
             key,
             record,
             agent.initial_memory(agent.env.num_envs),

@@ -64,8 +64,11 @@ class RecurrentAgent(Protocol):
     def initial_memory(self, num_envs: int) -> Any:
         """The memory (a pytree with a leading env axis) at the start of an episode."""
 
-    def act_recurrent(self, policy: Any, observation: Observation, memory: Any) -> tuple[jax.Array, Any]:
-        """The deterministic action for a batch of observations, and the updated memory."""
+    def act_recurrent(
+        self, policy: Any, observation: Observation, memory: Any, key: jax.Array
+    ) -> tuple[jax.Array, Any]:
+        """The evaluation action for a batch of observations, and the updated memory (``key``: for
+        a memory that is sampled, as DreamerV3's latent state)."""
 
 
 class TeacherRun(NamedTuple):
