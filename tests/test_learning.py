@@ -65,10 +65,10 @@ def test_dreamerv3_on_the_state_learns_to_balance(tmp_path):
     """DreamerV3 on Cart-pole's state vector, CPU preset: 15 minutes. A random policy already earns
     almost half the maximum on balance (≈ 1040 of 2400: the pole starts upright and takes a while
     to fall), so "learned" is holding it up for whole episodes: an evaluation at 1.9× random
-    (≈ 1980). Two runs (docs/results.md) first reached it after 200 updates, at 9.5 and 5.4
-    minutes on a core shared with other work. Its evaluations swing between ≈ 1000 and 2390
-    afterwards, so the check reads the best evaluation, not the last ones. (From pixels,
-    DreamerV3 stays below 2× random after two CPU hours: docs/results.md.)"""
+    (≈ 1980). The run in docs/results.md, alone on one core, first reached it at 3.3 minutes
+    (325 updates) and 10 of its 61 evaluations did; they swing between ≈ 1200 and 2180, so the
+    check reads the best evaluation, not the last ones. (From pixels, DreamerV3 stays below 2×
+    random after two CPU hours: docs/results.md.)"""
     run_dir = train(
         "cartpole_balance", "dreamerv3-state", preset="cpu", minutes=15, run_dir=tmp_path / "run", eval_every=25
     )
