@@ -219,7 +219,6 @@ class DreamerV3:
         else:
             self.encoder = MLPEncoder(cfg.units, cfg.layers)
             self.decoder = DreamerMLP(cfg.units, cfg.layers, env.task.obs_dim)
-        self.observation_key = config.observation
         self.rssm = RSSM(cfg.deter, cfg.stoch, cfg.classes, cfg.units)
         self.reward_head = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
         self.cont_head = DreamerMLP(cfg.units, cfg.layers, 1)
@@ -382,13 +381,13 @@ class DreamerV3:
         actor only ever see sampled one-hot states, and the combination of each categorical's most
         likely class is not one of them when the posterior is spread out. On Cart-pole balance
         (state), one trained policy scored 1102 with that mode and 1842 with samples."""
-        latent = self.step_latent(policy["model"], memory, observation[self.observation_key], key)
+        latent = self.step_latent(policy["model"], memory, observation[self.config.observation], key)
         action, _ = self.action_distribution(policy["actor"], features(latent.deter, latent.stoch))
         return action, latent.replace(action=action, restart=jnp.zeros_like(latent.restart))
 
     def act(self, policy: dict, observation: Observation) -> jax.Array:
         """The action from a fresh memory (as at an episode's first step), with a fixed key."""
-        memory = self.initial_memory(len(observation[self.observation_key]))
+        memory = self.initial_memory(len(observation[self.config.observation]))
         return self.act_recurrent(policy, observation, memory, jax.random.PRNGKey(0))[0]
 
     def policy(self, state: DreamerState) -> dict:
