@@ -266,8 +266,12 @@ class DreamerV3:
         """What the model sees of each env (and the replay stores): the frame, or the state."""
         return newest_frame(env) if self.pixels else env.obs
 
+    def encoder_input(self, observed: jax.Array) -> jax.Array:
+        """The frame as it is, or the symlog state."""
+        return observed if self.pixels else symlog(observed)
+
     def encode(self, model: dict, observed: jax.Array) -> jax.Array:
-        return self.encoder.apply(model["encoder"], observed if self.pixels else symlog(observed))
+        return self.encoder.apply(model["encoder"], self.encoder_input(observed))
 
     def reconstruction_target(self, observed: jax.Array) -> jax.Array:
         """What the decoder predicts: pixels in the encoder's scale, or the symlog state."""
@@ -434,7 +438,7 @@ class DreamerV3:
         weights, without gradient — the updated return scale and the actor's mean std."""
         cfg = self.config
         feats, actions, mean, std = self.imagine(model, actor, deter, stoch, key)
-        reward = twohot_decode(self.reward_head.apply(model["reward"], feats[1:]), self.bins)
+        reward = self.predicted_reward(model, feats[1:])
         # the continuation's mode, 1 or 0 (the reference's): no gradient, so the actor cannot raise
         # its return by nudging a confident continuation probability that the values multiply
         cont = (self.cont_head.apply(model["cont"], feats[1:])[..., 0] > 0.0).astype(reward.dtype)
@@ -514,7 +518,7 @@ class DreamerV3:
         env = self.env.reset(env_key)
         latent = self.initial_memory(cfg.num_envs)
         observed = self.observed(env)[:1]
-        encoder = self.encoder.init(net_keys[0], observed if self.pixels else symlog(observed))
+        encoder = self.encoder.init(net_keys[0], self.encoder_input(observed))
         feature = features(latent.deter[:1], latent.stoch[:1])
         model = {
             "encoder": encoder,
