@@ -4,7 +4,8 @@ D.Va, SHAC, DPG on state and visual SHAC are one trainer (:mod:`dva.algorithms.s
 different observations and gradients; DrQ-v2 and CURL (:mod:`dva.algorithms.drqv2`,
 :mod:`dva.algorithms.curl`) are the off-policy pixel baselines on a shared collection loop
 (:mod:`dva.algorithms.off_policy`); DreamerV3 (:mod:`dva.algorithms.dreamerv3`) learns a world
-model and acts from its recurrent state. :func:`build_agent` puts an algorithm together with its task
+model and acts from its recurrent state; TD-MPC2 (:mod:`dva.algorithms.tdmpc2`) learns an implicit
+world model and plans over it. :func:`build_agent` puts an algorithm together with its task
 and pixel wrapper; :func:`make_config` with its preset (:mod:`dva.configs`).
 """
 
@@ -20,7 +21,16 @@ from dva.algorithms.dagger import DAggerConfig, make_dagger
 from dva.algorithms.dreamerv3 import DreamerV3, DreamerV3Config
 from dva.algorithms.drqv2 import DrQV2, DrQV2Config
 from dva.algorithms.shac import SHAC, SHACConfig
-from dva.configs import PRESETS, curl_preset, dagger_preset, dreamerv3_preset, drqv2_preset, shac_preset
+from dva.algorithms.tdmpc2 import TDMPC2, TDMPC2Config
+from dva.configs import (
+    PRESETS,
+    curl_preset,
+    dagger_preset,
+    dreamerv3_preset,
+    drqv2_preset,
+    shac_preset,
+    tdmpc2_preset,
+)
 from dva.envs import PixelObservations, Renderer
 from dva.tasks import check_task_name, make_task
 
@@ -55,11 +65,12 @@ def _shac_renderer(config: SHACConfig) -> RendererKind:
     return "soft" if config.gradient == "full" else "warp"
 
 
-def _dreamer_renderer(config: DreamerV3Config) -> RendererKind:
+def _pixels_or_state(config: DreamerV3Config | TDMPC2Config) -> RendererKind:
     return "warp" if config.observation == "pixels" else None
 
 
 DREAMER_HINT = "lower learning rates (--dreamerv3.model-lr, --dreamerv3.actor-lr, --dreamerv3.critic-lr)"
+TDMPC2_HINT = "a lower learning rate (--tdmpc2.lr) or gradient clip (--tdmpc2.grad-clip)"
 SHAC_HINT = "a lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip"
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm(
@@ -140,7 +151,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         DreamerV3,
         dreamerv3_preset,
         dict(observation="pixels", frame_stack=1),
-        _dreamer_renderer,
+        _pixels_or_state,
         divergence_hint=DREAMER_HINT,
         flag_group="dreamerv3",
     ),
@@ -150,9 +161,29 @@ ALGORITHMS: dict[str, Algorithm] = {
         DreamerV3,
         dreamerv3_preset,
         dict(observation="state", frame_stack=1),
-        _dreamer_renderer,
+        _pixels_or_state,
         divergence_hint=DREAMER_HINT,
         flag_group="dreamerv3",
+    ),
+    "tdmpc2": Algorithm(
+        "TD-MPC2: an implicit world model from pixels (SimNorm latents), MPPI planning with a policy prior",
+        TDMPC2Config,
+        TDMPC2,
+        tdmpc2_preset,
+        dict(observation="pixels"),
+        _pixels_or_state,
+        divergence_hint=TDMPC2_HINT,
+        flag_group="tdmpc2",
+    ),
+    "tdmpc2-state": Algorithm(
+        "TD-MPC2 on the state: the same agent with an MLP encoder of the state vector",
+        TDMPC2Config,
+        TDMPC2,
+        tdmpc2_preset,
+        dict(observation="state"),
+        _pixels_or_state,
+        divergence_hint=TDMPC2_HINT,
+        flag_group="tdmpc2",
     ),
 }
 AlgoName = Literal[tuple(ALGORITHMS)]  # the names `dva train --algo` accepts

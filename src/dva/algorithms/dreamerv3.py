@@ -50,7 +50,7 @@ from dva.algorithms.dreamer_math import (
     unimix_logits,
     update_return_scale,
 )
-from dva.algorithms.off_policy import collect_into_replay, newest_frame
+from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.envs import Observation, PixelObservations
 from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, MLPEncoder, scale_pixels
 from dva.replay import SequenceReplay, Step
@@ -251,10 +251,8 @@ class DreamerV3:
 
     @property
     def seed_rounds(self) -> int:
-        """Steps of every env with uniform random actions before learning: ``seed_steps`` env steps
-        and at least one sampled sequence per env."""
         per_round = self.config.num_envs * self.config.action_repeat
-        return max(-(-self.config.seed_steps // per_round), self.config.batch_length)
+        return seed_rounds(self.config.seed_steps, per_round, self.config.batch_length)
 
     @property
     def prior_cost(self) -> tuple[float, int]:
@@ -538,14 +536,6 @@ class DreamerV3:
             "actor": self.actor.init(net_keys[5], feature),
             "critic": self.critic.init(net_keys[6], feature),
         }
-        example = Step(
-            frame=self.observed(env)[0],
-            first=jnp.ones((), bool),
-            action=jnp.zeros(action_dim),
-            reward=jnp.zeros(()),
-            terminated=jnp.zeros((), bool),
-            truncated=jnp.zeros((), bool),
-        )
         state = DreamerState(
             params=params,
             slow_critic=params["critic"],
@@ -554,17 +544,13 @@ class DreamerV3:
             env=env,
             first=jnp.ones(cfg.num_envs, bool),
             latent=latent,
-            replay=self.replay.init(example),
+            replay=self.replay.init(empty_step(self.observed(env)[0], action_dim)),
             episode_return=jnp.zeros(cfg.num_envs),
             key=key,
             iteration=jnp.zeros((), jnp.int32),
         )
 
-        def seed_round(state, round_key):
-            uniform = jax.random.uniform(round_key, (cfg.num_envs, action_dim), minval=-1.0, maxval=1.0)
-            return collect_into_replay(self.env, self.replay, state, uniform, stored=self.observed)[0], None
-
-        state = jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
+        state = seed_replay(self.env, self.replay, state, self.seed_rounds, seed_key, stored=self.observed)
         return state.replace(latent=latent)  # the actor starts from a fresh memory
 
     def iteration(self, state: DreamerState) -> tuple[DreamerState, dict[str, jax.Array]]:

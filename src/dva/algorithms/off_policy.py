@@ -101,6 +101,45 @@ def collect_into_replay(
     return state, jnp.where(next_env.done, episode_return, 0.0)
 
 
+def empty_step(observed: jax.Array, action_dim: int) -> Step:
+    """A step shaped like one env's ``observed`` (no leading axis): what a replay's ``init`` needs."""
+    return Step(
+        frame=observed,
+        first=jnp.ones((), bool),
+        action=jnp.zeros(action_dim),
+        reward=jnp.zeros(()),
+        terminated=jnp.zeros((), bool),
+        truncated=jnp.zeros((), bool),
+    )
+
+
+def seed_rounds(seed_steps: int, steps_per_round: int, sequence_length: int) -> int:
+    """Collection rounds of uniform random actions before learning: ``seed_steps`` env steps, and
+    at least one sampled sequence per env."""
+    return max(-(-seed_steps // steps_per_round), sequence_length)
+
+
+def seed_replay(
+    env: PixelObservations,
+    replay: SequenceReplay,
+    state,
+    rounds: int,
+    key: jax.Array,
+    reward_scale: float = 1.0,
+    stored=newest_frame,
+):
+    """``rounds`` steps of every env with uniform random actions, stored as
+    :func:`collect_into_replay` stores them (the seed phase, run by an agent's ``init``: the
+    iteration then stays free of a ``lax.cond`` around its updates)."""
+
+    def seed_round(state, round_key):
+        shape = (env.num_envs, env.task.action_dim)
+        uniform = jax.random.uniform(round_key, shape, minval=-1.0, maxval=1.0)
+        return collect_into_replay(env, replay, state, uniform, reward_scale, stored)[0], None
+
+    return jax.lax.scan(seed_round, state, jax.random.split(key, rounds))[0]
+
+
 class OffPolicyAgent(abc.ABC):
     """The shared collection and update loop; see the module docstring."""
 
@@ -171,9 +210,7 @@ class OffPolicyAgent(abc.ABC):
     # ---- the shared loop ----------------------------------------------------------------------
     @property
     def seed_rounds(self) -> int:
-        """Collection rounds of uniform random actions before learning: ``seed_steps`` env steps,
-        and at least one sampled sequence per env."""
-        return max(-(-self.config.seed_steps // self.env_steps_per_iteration), self.replay.sequence_length)
+        return seed_rounds(self.config.seed_steps, self.env_steps_per_iteration, self.replay.sequence_length)
 
     @property
     def prior_cost(self) -> tuple[float, int]:
@@ -181,37 +218,19 @@ class OffPolicyAgent(abc.ABC):
         return 0.0, self.seed_rounds * self.env_steps_per_iteration
 
     def init(self, key: jax.Array) -> OffPolicyState:
-        """Fresh networks and envs, and a replay filled by the seed phase (uniform random actions).
-
-        The seed phase runs here rather than as iterations that skip the update: the iteration
-        stays free of a ``lax.cond`` around its updates."""
+        """Fresh networks and envs, and a replay filled by the seed phase (uniform random actions)."""
         env_key, learner_key, seed_key, key = jax.random.split(key, 4)
         env = self.env.reset(env_key)
-        example = Step(
-            frame=env.pixels[0, ..., -3:],
-            first=jnp.ones((), bool),
-            action=jnp.zeros(self.task.action_dim),
-            reward=jnp.zeros(()),
-            terminated=jnp.zeros((), bool),
-            truncated=jnp.zeros((), bool),
-        )
         state = OffPolicyState(
             learner=self.init_learner(learner_key, env.pixels[:1]),
             env=env,
             first=jnp.ones(self.config.num_envs, bool),
-            replay=self.replay.init(example),
+            replay=self.replay.init(empty_step(newest_frame(env)[0], self.task.action_dim)),
             episode_return=jnp.zeros(self.config.num_envs),
             key=key,
             iteration=jnp.zeros((), jnp.int32),
         )
-
-        def seed_round(state, round_key):
-            uniform = jax.random.uniform(
-                round_key, (self.config.num_envs, self.task.action_dim), minval=-1.0, maxval=1.0
-            )
-            return self.collect(state, uniform)[0], None
-
-        return jax.lax.scan(seed_round, state, jax.random.split(seed_key, self.seed_rounds))[0]
+        return seed_replay(self.env, self.replay, state, self.seed_rounds, seed_key, self.config.reward_scale)
 
     def collect(self, state: OffPolicyState, action: jax.Array) -> tuple[OffPolicyState, jax.Array]:
         """:func:`collect_into_replay` with this agent's env, replay and reward scale."""

@@ -1,0 +1,223 @@
+"""TD-MPC2: its pieces against hand-computed values (SimNorm, two-hot targets on its bins, the
+discount rule, the loss weights at an episode's end), the planner against a known model, and a
+tiny pixel agent through the training loop (logs, evaluation with the plan as memory, the
+target-Q average). Learning Cart-pole is measured in docs/results.md."""
+
+from __future__ import annotations
+
+import csv
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dva.algorithms import build_agent, make_config
+from dva.algorithms.dreamer_math import twohot, twohot_decode
+from dva.algorithms.tdmpc2 import TDMPC2, discount_for
+from dva.envs import PixelObservations
+from dva.networks.tdmpc2 import simnorm
+from dva.replay import Step
+from dva.tasks import make_task
+from dva.training import load_run, train
+
+# 48² frames through 4-channel convolutions: a 2·2·4 = 16-entry latent; 2 envs, no action repeat.
+TINY = dict(
+    num_envs=2,
+    image_size=48,
+    channels=4,
+    action_repeat=1,
+    batch_size=4,
+    latent_dim=16,
+    encoder_dim=16,
+    mlp_dim=16,
+    num_q=2,
+    num_bins=21,
+    num_samples=16,
+    num_elites=4,
+    num_pi_trajs=2,
+    mppi_iterations=2,
+    replay_size=200,
+    seed_steps=8,
+    updates_per_iteration=2,
+    lr=3e-3,
+)
+
+
+def rows(run_dir) -> list[dict]:
+    with (run_dir / "progress.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def tdmpc2_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("tdmpc2") / "run"
+    train("cartpole_balance", "tdmpc2", preset="cpu", iterations=20, run_dir=run_dir, eval_every=10, **TINY)
+    return run_dir
+
+
+def test_simnorm_makes_every_group_of_entries_a_softmax():
+    x = jax.random.normal(jax.random.PRNGKey(0), (3, 16)) * 3.0
+    out = np.asarray(simnorm(x, 8))
+    groups = np.asarray(x).reshape(3, 2, 8)
+    expected = np.exp(groups) / np.exp(groups).sum(-1, keepdims=True)
+    np.testing.assert_allclose(out, expected.reshape(3, 16), rtol=1e-5)
+    np.testing.assert_allclose(out.reshape(3, 2, 8).sum(-1), 1.0, rtol=1e-6)
+    # a constant added to one group changes nothing: the latent lives on the simplices
+    np.testing.assert_allclose(simnorm(x.at[:, :8].add(5.0), 8), out, rtol=1e-5)
+
+
+def test_twohot_targets_on_tdmpc2s_bins_decode_to_the_value():
+    agent = small_agent()
+    bins = agent.bins
+    assert len(bins) == 21 and float(bins[0]) == -10.0 and float(bins[-1]) == 10.0
+    values = jnp.array([-500.0, -2.5, 0.0, 0.3, 7.0, 3000.0])
+    target = twohot(values, bins)
+    np.testing.assert_allclose(target.sum(-1), 1.0, rtol=1e-6)
+    assert int((target > 0).sum(-1).max()) <= 2
+    # logits = log(target): the head's prediction is the value, its cross-entropy gradient zero
+    logits = jnp.log(target + 1e-30)
+    np.testing.assert_allclose(twohot_decode(logits, bins), values, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(jax.nn.softmax(logits) - target, 0.0, atol=1e-6)
+
+
+def test_discount_follows_the_episode_length_rule():
+    assert discount_for(500) == pytest.approx(0.99)  # DMC's 1000 steps at action repeat 2
+    assert discount_for(120) == pytest.approx(23 / 24)  # Cart-pole's 240 at action repeat 2
+    assert discount_for(20) == 0.95 and discount_for(100_000) == 0.995
+
+
+def small_agent(observation: str = "state", **overrides) -> TDMPC2:
+    values = {**TINY, **overrides}
+    if observation == "state":
+        values.pop("image_size")
+    config = make_config("cartpole_balance", "tdmpc2" if observation == "pixels" else "tdmpc2-state", "cpu", **values)
+    return build_agent("cartpole_balance", "tdmpc2-state" if observation == "state" else "tdmpc2", config)
+
+
+def one_sequence(terminated_at: int | None = None, truncated_at: int | None = None) -> Step:
+    """A replayed state sequence of 1 + H = 4 steps (batch 1) ending at the given step."""
+    flags = lambda at: jnp.zeros((1, 4), bool) if at is None else jnp.zeros((1, 4), bool).at[0, at].set(True)
+    return Step(
+        frame=jnp.arange(4.0)[None, :, None] * jnp.ones((1, 4, 5)),
+        first=jnp.zeros((1, 4), bool),
+        action=jnp.zeros((1, 4, 1)),
+        reward=jnp.array([[1.0, 2.0, 3.0, 4.0]]),
+        terminated=flags(terminated_at),
+        truncated=flags(truncated_at),
+    )
+
+
+def test_losses_stop_at_an_episode_end():
+    agent = small_agent()
+    # a termination at step 1: its reward and value (no bootstrap) count; its next observation
+    # (the next episode's first) and everything after do not
+    batch = agent.sequences(one_sequence(terminated_at=1))
+    np.testing.assert_array_equal(batch.reached[:, 0], [True, True, False, False])
+    np.testing.assert_array_equal(batch.bootstrap[:, 0], [True, False, False])
+    np.testing.assert_array_equal(batch.terminated[:, 0], [0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(batch.reward[:, 0], [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(batch.obs[:, 0, 0], [0.0, 1.0, 2.0, 3.0])
+    # a time limit at step 0: its reward counts, its value does not (its successor was replaced)
+    batch = agent.sequences(one_sequence(truncated_at=0))
+    np.testing.assert_array_equal(batch.reached[:, 0], [True, False, False, False])
+    np.testing.assert_array_equal(batch.bootstrap[:, 0], [False, False, False])
+    value_weight = batch.reached[:-1] & ~batch.truncated
+    np.testing.assert_array_equal(value_weight[:, 0], [False, False, False])
+
+
+class KnownModel(TDMPC2):
+    """A planner over a model known in closed form: the latent's first entry moves by half the
+    action, the reward is ``−(position − 1)²`` after the move, no value at the end, and a policy
+    prior that always pushes the wrong way (−0.5)."""
+
+    def next(self, params, z, action):
+        return z.at[..., 0].add(0.5 * action[..., 0])
+
+    def reward(self, params, z, action):
+        return -((z[..., 0] + 0.5 * action[..., 0] - 1.0) ** 2)
+
+    def terminated(self, params, z):
+        return jnp.zeros(z.shape[:-1], bool)
+
+    def q_value(self, q_params, z, action, key, reduce):
+        return jnp.zeros(z.shape[:-1])
+
+    def policy_sample(self, policy, z, key):
+        action = jnp.full(z.shape[:-1] + (1,), -0.5)
+        return action, action, jnp.zeros(z.shape[:-1])
+
+
+NO_PARAMS = {"policy": {}, "q": {}}  # the known model needs none
+
+
+def test_the_planner_improves_on_the_prior_under_a_known_model():
+    env = PixelObservations(make_task("cartpole_balance"), 2)
+    config = make_config("cartpole_balance", "tdmpc2-state", "cpu", num_envs=2, num_samples=256, num_elites=32)
+    agent = KnownModel(env, config)
+    z = jnp.zeros(config.latent_dim)
+    plan = jax.jit(lambda key: agent.plan(NO_PARAMS, z, jnp.zeros((3, 1)), key, False))
+    action, mean, _ = plan(jax.random.PRNGKey(0))
+    key = jax.random.PRNGKey(1)
+    value = lambda actions: float(agent.trajectory_value(NO_PARAMS, z[None], actions[:, None], key)[0])
+    prior = jnp.full((3, 1), -0.5)
+    # the best plan moves to 1 in two steps of +1 and stays (return −0.25 − 0 − 0 = −0.25); the
+    # prior's moves away (−1.5625 − 2.25 − 3.0625 discounted)
+    assert value(mean) > -0.5 > value(prior)
+    assert float(action[0]) > 0.6
+
+
+def test_tdmpc2_trains_and_evaluates_through_the_loop(tdmpc2_run):
+    log = rows(tdmpc2_run)
+    assert [int(r["iteration"]) for r in log] == list(range(21))
+    # seed phase: 8 env steps, at least one 3 − 1 + 3 + 1 = 6-step sequence per env: 6 rounds of 2
+    assert [int(r["env_steps"]) for r in log] == [12 + 2 * i for i in range(21)]
+    evaluations = [float(r["eval_return"]) for r in log if r["eval_return"] != ""]
+    assert len(evaluations) == 3 and all(np.isfinite(evaluations))
+    _, agent, state = load_run(tdmpc2_run)
+    assert int(state.iteration) == 20 and int(state.replay.current_index) == 6 + 20
+    assert all(np.isfinite(float(r[name])) for r in log[1:] for name in agent.metric_names)
+    # the reward head starts at 0 for every reward (zero output layer) and learns the replay's
+    reward_loss = [float(r["reward_loss"]) for r in log[1:]]
+    assert np.mean(reward_loss[-3:]) < 0.7 * np.mean(reward_loss[:3])
+
+
+def test_an_update_moves_the_target_qs_by_tau(tdmpc2_run):
+    _, agent, state = load_run(tdmpc2_run)
+    updated, metrics = jax.jit(agent.update)(state, jax.random.PRNGKey(3))
+    tau = agent.config.tau
+    expected = jax.tree.map(lambda q, target: tau * q + (1 - tau) * target, updated.params["q"], state.target_q)
+    for got, want in zip(jax.tree.leaves(updated.target_q), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+    # the policy prior's update leaves the world model alone and the model's leaves the prior
+    assert float(metrics["q_scale"]) >= 1.0
+    changed = lambda name: any(
+        np.abs(np.asarray(a) - np.asarray(b)).max() > 0
+        for a, b in zip(jax.tree.leaves(updated.params[name]), jax.tree.leaves(state.params[name]))
+    )
+    assert changed("policy") and changed("dynamics") and changed("encoder")
+
+
+def test_evaluation_carries_the_plan_and_the_first_step_plans_afresh(tdmpc2_run):
+    _, agent, state = load_run(tdmpc2_run)
+    policy, observation = agent.policy(state), agent.env.observe(state.env)
+    act = jax.jit(agent.act_recurrent)
+    fresh = agent.initial_memory(agent.config.num_envs)
+    key = jax.random.PRNGKey(0)
+    first_action, plan = act(policy, observation, fresh, key)
+    np.testing.assert_allclose(first_action, jax.jit(agent.act)(policy, observation), atol=1e-6)
+    assert plan.shape == (2, 3, 1) and np.all(np.abs(np.asarray(first_action)) <= 1.0)
+    # the next step starts from the plan, shifted: a different start, a different plan
+    _, next_plan = act(policy, observation, plan, key)
+    assert np.abs(np.asarray(next_plan - plan)).max() > 1e-5
+
+
+def test_bad_tdmpc2_settings_name_the_value():
+    with pytest.raises(ValueError, match="num_q = 1 .* ≥ 2"):
+        make_config("cartpole_balance", "tdmpc2", "cpu", num_q=1)
+    with pytest.raises(ValueError, match="num_elites = 300, .* num_samples = 256"):
+        make_config("cartpole_balance", "tdmpc2", "cpu", num_elites=300)
+    with pytest.raises(ValueError, match="simnorm_group = 7 .* 128 entries"):
+        make_config("cartpole_balance", "tdmpc2", "cpu", simnorm_group=7)
+    with pytest.raises(ValueError, match="image_size = 32 .* ≥ 39"):
+        make_config("cartpole_balance", "tdmpc2", "cpu", image_size=32)
