@@ -75,7 +75,13 @@ def test_figures_compare_the_paper_settings():
         5,
         6,
     ]
-    assert [s.algo for s in figure_settings("fig4", ["cartpole_swingup"])] == ["dva", "drqv2", "curl", "dreamerv3"]
+    assert [s.algo for s in figure_settings("fig4", ["cartpole_swingup"])] == [
+        "dva",
+        "drqv2",
+        "curl",
+        "dreamerv3",
+        "tdmpc2",
+    ]
     assert [s.algo for s in figure_settings("fig6", ["a", "b"])] == ["dva", "dagger"] * 2
     assert [(s.algo, s.slug) for s in figure_settings("fig13", ["ant"])] == [
         ("shac", "ant_shac"),

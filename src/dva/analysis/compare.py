@@ -60,9 +60,9 @@ class Setting:
 def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None = None) -> list[Setting]:
     """The settings a figure compares on each of ``tasks``.
 
-    fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3) visual baselines; fig6:
-    D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs visual SHAC; fig13:
-    SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels);
+    fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3, TD-MPC2) visual
+    baselines; fig6: D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs
+    visual SHAC; fig13: SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels);
     ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
     stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable).
     """
@@ -83,7 +83,7 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
         ]
     else:
         algos = {
-            "fig4": ("dva", "drqv2", "curl", "dreamerv3"),
+            "fig4": ("dva", "drqv2", "curl", "dreamerv3", "tdmpc2"),
             "fig6": ("dva", "dagger"),
             "fig7": ("dva", "shac-pixels"),
             "fig13": ("shac", "dpg-state"),
