@@ -215,7 +215,7 @@ def test_evaluation_carries_the_plan_and_the_first_step_plans_afresh(tdmpc2_run)
 def test_bad_tdmpc2_settings_name_the_value():
     with pytest.raises(ValueError, match="num_q = 1 .* ≥ 2"):
         make_config("cartpole_balance", "tdmpc2", "cpu", num_q=1)
-    with pytest.raises(ValueError, match="num_elites = 300, .* num_samples = 256"):
+    with pytest.raises(ValueError, match="num_elites = 300, .* num_samples = 128"):
         make_config("cartpole_balance", "tdmpc2", "cpu", num_elites=300)
     with pytest.raises(ValueError, match="simnorm_group = 7 .* 128 entries"):
         make_config("cartpole_balance", "tdmpc2", "cpu", simnorm_group=7)
