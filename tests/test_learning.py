@@ -61,6 +61,11 @@ def test_pixel_baselines_learn_cartpole_balance(tmp_path, algo, minutes):
     assert late_eval_return(run_dir) > 2 * random_return("cartpole_balance")
 
 
+def best_eval_return(run_dir) -> float:
+    with (run_dir / "progress.csv").open() as f:
+        return max(float(r["eval_return"]) for r in csv.DictReader(f) if r["eval_return"] != "")
+
+
 def test_dreamerv3_on_the_state_learns_to_balance(tmp_path):
     """DreamerV3 on Cart-pole's state vector, CPU preset: 15 minutes. A random policy already earns
     almost half the maximum on balance (≈ 1040 of 2400: the pole starts upright and takes a while
@@ -72,6 +77,15 @@ def test_dreamerv3_on_the_state_learns_to_balance(tmp_path):
     run_dir = train(
         "cartpole_balance", "dreamerv3-state", preset="cpu", minutes=15, run_dir=tmp_path / "run", eval_every=25
     )
-    with (run_dir / "progress.csv").open() as f:
-        best = max(float(r["eval_return"]) for r in csv.DictReader(f) if r["eval_return"] != "")
-    assert best > 1.9 * random_return("cartpole_balance")
+    assert best_eval_return(run_dir) > 1.9 * random_return("cartpole_balance")
+
+
+def test_tdmpc2_on_the_state_learns_to_balance(tmp_path):
+    """TD-MPC2 on Cart-pole's state vector, CPU preset: 12 minutes, the bar DreamerV3's test sets
+    (an evaluation at 1.9× random: the pole held up for whole episodes). The run in
+    docs/results.md, on a core shared with two other processes, first reached it at 7.3 minutes
+    and scored 2395 of the 2400 maximum at 10 minutes."""
+    run_dir = train(
+        "cartpole_balance", "tdmpc2-state", preset="cpu", minutes=12, run_dir=tmp_path / "run", eval_every=200
+    )
+    assert best_eval_return(run_dir) > 1.9 * random_return("cartpole_balance")
