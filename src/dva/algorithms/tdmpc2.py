@@ -416,13 +416,16 @@ class TDMPC2:
         flat = obs.reshape((-1,) + obs.shape[2:])
         return random_shift(flat, self.config.shift_pad, key).reshape(obs.shape)
 
-    def model_loss(self, params: dict, batch: Sequences, obs: jax.Array, td_target: jax.Array, key: jax.Array):
-        """The world model's loss (see the module docstring) on augmented observations ``obs``
-        (H + 1, B, …); also returns the rolled-out latents (H + 1, B, L) and the loss terms."""
+    def model_loss(
+        self, params: dict, batch: Sequences, first_obs: jax.Array, next_z: jax.Array, td_target: jax.Array, key
+    ):
+        """The world model's loss (see the module docstring) from the augmented first observation
+        ``first_obs`` (B, …), with ``next_z`` (H, B, L) the encodings of the next ones (the
+        consistency targets, without gradient); also returns the rolled-out latents (H + 1, B, L)
+        and the loss terms."""
         cfg = self.config
         weight = cfg.rho ** jnp.arange(cfg.horizon)[:, None] / cfg.batch_size  # (H, 1)
-        next_z = jax.lax.stop_gradient(self.encode(params, obs[1:]))
-        z, zs, consistency = self.encode(params, obs[0]), [], 0.0
+        z, zs, consistency = self.encode(params, first_obs), [], 0.0
         zs.append(z)
         for t in range(cfg.horizon):
             z = self.next(params, z, batch.action[t])
@@ -452,11 +455,10 @@ class TDMPC2:
         )
         return loss, (zs, terms)
 
-    def td_target(self, params: dict, target_q: dict, batch: Sequences, obs: jax.Array, key: jax.Array) -> jax.Array:
-        """``r + γ (1 − terminated) min(Q̄ᵢ, Q̄ⱼ)(z', π(z'))`` per step (H, B), ``z'`` the encoding of
-        the next observation."""
+    def td_target(self, params: dict, target_q: dict, batch: Sequences, next_z: jax.Array, key: jax.Array) -> jax.Array:
+        """``r + γ (1 − terminated) min(Q̄ᵢ, Q̄ⱼ)(z', π(z'))`` per step (H, B), ``z'`` = ``next_z``
+        the encoding of the next observation."""
         policy_key, q_key = jax.random.split(key)
-        next_z = self.encode(params, obs[1:])
         action = self.policy_sample(params["policy"], next_z, policy_key)[0]
         next_value = self.q_value(target_q, next_z, action, q_key, "min")
         return jax.lax.stop_gradient(batch.reward + self.gamma * (1.0 - batch.terminated) * next_value)
@@ -481,10 +483,12 @@ class TDMPC2:
         batch = self.sequences(self.replay.sample_sequences(state.replay, sample_key))
         obs = self.augment(batch.obs, shift_key)
         params, opt_states = state.params, dict(state.opt_states)
-        td_target = self.td_target(params, state.target_q, batch, obs, target_key)
+        # the next observations' encodings: the consistency targets and where the TD targets start
+        next_z = jax.lax.stop_gradient(self.encode(params, obs[1:]))
+        td_target = self.td_target(params, state.target_q, batch, next_z, target_key)
         model = {name: value for name, value in params.items() if name != "policy"}
         (_, (zs, terms)), grads = jax.value_and_grad(self.model_loss, has_aux=True)(
-            model, batch, obs, td_target, dropout_key
+            model, batch, obs[0], next_z, td_target, dropout_key
         )
         updates, opt_states["model"] = self.optimizers["model"].update(grads, opt_states["model"], model)
         model = optax.apply_updates(model, updates)
