@@ -178,8 +178,11 @@ def dreamerv3_preset(task: str, preset: str) -> dict:
 # model, 128-wide networks, batch 64, and a planner of 128 samples (6 from the prior), 16 elites
 # and 3 refits: 0.31 s per iteration of 4 envs (0.14 s planning, 0.06 s per update) on a shared
 # core. With 256-wide networks, batch 128 and 256 samples × 4 refits an iteration took 0.93 s and
-# swing-up from the state was still below random after 5k env steps (10 minutes).
+# swing-up from the state was still below random after 5k env steps (10 minutes). A 100k-step
+# replay, as the other CPU presets': the reference's million 48² frames would take 6.9 GB, and as
+# much again in every checkpoint.
 TDMPC2_CPU = dict(
+    replay_size=100_000,
     latent_dim=128,
     mlp_dim=128,
     num_q=2,
