@@ -221,3 +221,10 @@ def test_bad_tdmpc2_settings_name_the_value():
         make_config("cartpole_balance", "tdmpc2", "cpu", simnorm_group=7)
     with pytest.raises(ValueError, match="image_size = 32 .* ≥ 39"):
         make_config("cartpole_balance", "tdmpc2", "cpu", image_size=32)
+
+
+def test_an_unhealthy_update_names_every_loss_and_its_value():
+    agent = small_agent()
+    metrics = {name: 1.5 for name in agent.metric_names} | {"value_loss": float("nan")}
+    reason = agent.abort_reason(metrics)
+    assert reason.startswith("a NaN or infinite loss (") and "value_loss nan" in reason and "reward_loss 1.5" in reason

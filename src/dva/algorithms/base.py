@@ -71,6 +71,12 @@ class RecurrentAgent(Protocol):
         a memory that is sampled, as DreamerV3's latent state)."""
 
 
+def nan_loss_reason(metrics: dict[str, Any], names: tuple[str, ...]) -> str:
+    """Why an update with a NaN or infinite loss stops training: every loss in ``names`` with its value."""
+    losses = ", ".join(f"{name} {float(metrics[name]):.3g}" for name in names)
+    return f"a NaN or infinite loss ({losses})"
+
+
 class TeacherRun(NamedTuple):
     """A finished run another agent learns from (DAgger's teacher): its algorithm, agent, policy
     parameters, and the (seconds, env steps) it cost, which the learner's curve continues from."""

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.algorithms.base import nan_loss_reason
 from dva.algorithms.dreamer_math import (
     kl_balance_losses,
     lambda_returns,
@@ -579,5 +580,4 @@ class DreamerV3:
         return state.replace(key=key, iteration=state.iteration + 1), metrics
 
     def abort_reason(self, metrics: dict) -> str:
-        losses = ", ".join(f"{name} {float(metrics[name]):.3g}" for name in self.metric_names)
-        return f"a NaN or infinite loss ({losses})"
+        return nan_loss_reason(metrics, self.metric_names)

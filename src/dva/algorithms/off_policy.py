@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.algorithms.base import nan_loss_reason
 from dva.envs import PixelObservations
 from dva.networks import PixelEncoder
 from dva.replay import FrameReplay, NStepBatch, SequenceReplay, Step
@@ -262,5 +263,4 @@ class OffPolicyAgent(abc.ABC):
         return state.replace(learner=learner, key=key, iteration=state.iteration + 1), metrics
 
     def abort_reason(self, metrics: dict) -> str:
-        losses = ", ".join(f"{name} {float(metrics[name]):.3g}" for name in self.loss_names)
-        return f"a NaN or infinite loss ({losses})"
+        return nan_loss_reason(metrics, self.loss_names)

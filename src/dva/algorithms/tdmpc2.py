@@ -54,6 +54,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.algorithms.base import nan_loss_reason
 from dva.algorithms.dreamer_math import symlog_bins, twohot, twohot_decode
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.augmentation import random_shift
@@ -565,5 +566,4 @@ class TDMPC2:
         return state.replace(key=key, iteration=state.iteration + 1), metrics
 
     def abort_reason(self, metrics: dict) -> str:
-        losses = ", ".join(f"{name} {float(metrics[name]):.3g}" for name in self.metric_names)
-        return f"a NaN or infinite loss ({losses})"
+        return nan_loss_reason(metrics, self.metric_names)
