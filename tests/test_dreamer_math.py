@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms.dreamer_math import (
+    categorical_cross_entropy,
     categorical_kl,
     kl_balance_losses,
     lambda_returns,
@@ -83,3 +84,12 @@ def test_kl_balancing_with_free_bits_by_hand():
 def test_unimix_keeps_every_class_likely():
     probs = jnp.exp(unimix_logits(jnp.array([100.0, 0.0, 0.0, 0.0]), mix=0.01))
     np.testing.assert_allclose(probs, [0.99 + 0.0025, 0.0025, 0.0025, 0.0025], rtol=1e-5)
+
+
+def test_categorical_cross_entropy_against_hand_computed_values():
+    # uniform over 4 classes against a one-hot target: log 4; against a two-hot 0.25/0.75 split
+    # of logits (0, log 3): −(0.25 log 0.25 + 0.75 log 0.75)
+    np.testing.assert_allclose(categorical_cross_entropy(jnp.zeros(4), jnp.eye(4)[2]), np.log(4.0), rtol=1e-6)
+    logits, target = jnp.log(jnp.array([1.0, 3.0])), jnp.array([0.25, 0.75])
+    expected = -(0.25 * np.log(0.25) + 0.75 * np.log(0.75))
+    np.testing.assert_allclose(categorical_cross_entropy(logits, target), expected, rtol=1e-6)

@@ -39,6 +39,12 @@ def twohot(x: jax.Array, bins: jax.Array) -> jax.Array:
     )
 
 
+def categorical_cross_entropy(logits: jax.Array, target: jax.Array) -> jax.Array:
+    """The cross-entropy of ``softmax(logits)`` against a (soft) ``target`` distribution, such as a
+    :func:`twohot` encoding."""
+    return -jnp.sum(target * jax.nn.log_softmax(logits, -1), axis=-1)
+
+
 def twohot_decode(logits: jax.Array, bins: jax.Array) -> jax.Array:
     """The prediction of a two-hot head: ``symexp(Σ softmax(logits)_k bins_k)``."""
     return symexp(jnp.sum(jax.nn.softmax(logits, axis=-1) * bins, axis=-1))

@@ -41,6 +41,7 @@ from flax import struct
 
 from dva.algorithms.base import nan_loss_reason
 from dva.algorithms.dreamer_math import (
+    categorical_cross_entropy,
     kl_balance_losses,
     lambda_returns,
     normalized_advantage,
@@ -184,10 +185,6 @@ def sample_onehot(logits: jax.Array, key: jax.Array) -> jax.Array:
 def features(deter: jax.Array, stoch: jax.Array) -> jax.Array:
     """What the heads read: ``[h, flatten(z)]``."""
     return jnp.concatenate([deter, stoch.reshape(stoch.shape[:-2] + (-1,))], axis=-1)
-
-
-def categorical_cross_entropy(logits: jax.Array, target: jax.Array) -> jax.Array:
-    return -jnp.sum(target * jax.nn.log_softmax(logits, -1), axis=-1)
 
 
 class DreamerV3:

@@ -55,7 +55,7 @@ import optax
 from flax import struct
 
 from dva.algorithms.base import nan_loss_reason
-from dva.algorithms.dreamer_math import symlog_bins, twohot, twohot_decode
+from dva.algorithms.dreamer_math import categorical_cross_entropy, symlog_bins, twohot, twohot_decode
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations
@@ -167,14 +167,6 @@ def discount_for(episode_steps: int) -> float:
     """TD-MPC2's discount from the episode's length in agent steps: ``(T/5 − 1)/(T/5)`` in [0.95, 0.995]."""
     fraction = episode_steps / 5
     return min(max((fraction - 1) / fraction, 0.95), 0.995)
-
-
-def binary_cross_entropy(logit: jax.Array, label: jax.Array) -> jax.Array:
-    return optax.sigmoid_binary_cross_entropy(logit, label)
-
-
-def soft_cross_entropy(logits: jax.Array, target: jax.Array) -> jax.Array:
-    return -jnp.sum(target * jax.nn.log_softmax(logits, -1), -1)
 
 
 class TDMPC2:
@@ -436,12 +428,12 @@ class TDMPC2:
         zs = jnp.stack(zs)
         inputs = concat_action(zs[:-1], batch.action)
         reward_logits = self.reward_head.apply(params["reward"], inputs)
-        reward_error = soft_cross_entropy(reward_logits, twohot(batch.reward, self.bins))
+        reward_error = categorical_cross_entropy(reward_logits, twohot(batch.reward, self.bins))
         q_logits = self.q.apply(params["q"], inputs, dropout_key=key)  # (num_q, H, B, bins)
-        value_error = jnp.sum(soft_cross_entropy(q_logits, twohot(td_target, self.bins)[None]), 0)
+        value_error = jnp.sum(categorical_cross_entropy(q_logits, twohot(td_target, self.bins)[None]), 0)
         value_weight = batch.reached[:-1] & ~batch.truncated
         termination_logit = self.termination_head.apply(params["termination"], zs[1:])[..., 0]
-        termination_error = binary_cross_entropy(termination_logit, batch.terminated)
+        termination_error = optax.sigmoid_binary_cross_entropy(termination_logit, batch.terminated)
         terms = {
             "consistency_loss": consistency / cfg.horizon,
             "reward_loss": jnp.sum(weight * batch.reached[:-1] * reward_error) / cfg.horizon,
@@ -471,7 +463,8 @@ class TDMPC2:
         action_key, q_key = jax.random.split(key)
         action, _, entropy = self.policy_sample(policy, zs, action_key)
         q = self.q_value(q_params, zs, action, q_key, "mean")
-        spread = jnp.percentile(jax.lax.stop_gradient(q[0]), 95) - jnp.percentile(jax.lax.stop_gradient(q[0]), 5)
+        low, high = jnp.percentile(jax.lax.stop_gradient(q[0]), jnp.array([5.0, 95.0]))
+        spread = high - low
         q_scale = q_scale + cfg.tau * (jnp.maximum(spread, 1.0) - q_scale)
         weight = cfg.rho ** jnp.arange(cfg.horizon + 1)[:, None] * reached / cfg.batch_size
         loss = -jnp.sum(weight * (cfg.entropy_coef * entropy + q / q_scale)) / (cfg.horizon + 1)
