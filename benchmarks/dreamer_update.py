@@ -46,16 +46,31 @@ def convolutions(form: str):
         networks.strided_conv4, networks.strided_conv4_transpose = ours
 
 
+@contextlib.contextmanager
+def unrolled_scans():
+    """Trace every ``jax.lax.scan`` fully unrolled. XLA's cost analysis counts a loop's body once,
+    whatever its trip count, so only an unrolled trace counts every step's operations."""
+    import jax
+
+    scan = jax.lax.scan
+    jax.lax.scan = functools.partial(scan, unroll=True)
+    try:
+        yield
+    finally:
+        jax.lax.scan = scan
+
+
 def profile(fn, *args, repeats: int) -> tuple[float, float]:
-    """(best seconds, GFLOP by XLA's cost analysis) of ``jax.jit(fn)(*args)``."""
+    """(best seconds, GFLOP) of ``jax.jit(fn)(*args)``: timed as it runs (scans as loops), its
+    operations counted by XLA's cost analysis of the same function with its scans unrolled."""
     import jax
 
     from dva.analysis.bench import timed
 
-    compiled = jax.jit(fn).lower(*args).compile()
-    cost = compiled.cost_analysis()
+    with unrolled_scans():
+        cost = jax.jit(fn).lower(*args).compile().cost_analysis()
     cost = cost[0] if isinstance(cost, list) else cost
-    return timed(compiled, *args, repeats=repeats)[1], float(cost.get("flops", 0.0)) / 1e9
+    return timed(jax.jit(fn), *args, repeats=repeats)[1], float(cost.get("flops", 0.0)) / 1e9
 
 
 def peak_gflops(repeats: int) -> float:

@@ -89,20 +89,21 @@ def test_pixel_encoder_feature_size():
     assert features.shape == (1, 35 * 35 * 32)
 
 
-@pytest.mark.parametrize("transpose", [False, True])
-def test_strided_conv4_and_its_gradients_match_flax(transpose):
+@pytest.mark.parametrize("transpose, features", [(False, 7), (True, 7), (True, 20)])
+def test_strided_conv4_and_its_gradients_match_flax(transpose, features):
     """DreamerV3's 4×4 stride-2 SAME layers (blocks as channels; the transpose as four output
-    phases) against ``nn.Conv`` / ``nn.ConvTranspose`` with the same parameters."""
+    phases, as one 3×3 convolution for ≤ 16 features) against ``nn.Conv`` / ``nn.ConvTranspose``
+    with the same parameters."""
     kx, kp, kg = jax.random.split(jax.random.PRNGKey(1), 3)
     x = jax.random.normal(kx, (3, 8, 6, 5))  # non-square: a swapped row / column tap shows
-    ours = StridedConv4(7, transpose=transpose)
-    flax_layer = (nn.ConvTranspose if transpose else nn.Conv)(7, (4, 4), (2, 2), "SAME")
+    ours = StridedConv4(features, transpose=transpose)
+    flax_layer = (nn.ConvTranspose if transpose else nn.Conv)(features, (4, 4), (2, 2), "SAME")
     params = ours.init(kp, x)
     params = jax.tree.map(lambda p: p + 0.1 * jax.random.normal(kg, p.shape), params)  # a non-zero bias
     assert jax.tree.structure(params) == jax.tree.structure(flax_layer.init(kp, x))
     got, got_vjp = jax.vjp(ours.apply, params, x)
     expected, expected_vjp = jax.vjp(flax_layer.apply, params, x)
-    assert got.shape == expected.shape == ((3, 16, 12, 7) if transpose else (3, 4, 3, 7))
+    assert got.shape == expected.shape == ((3, 16, 12, features) if transpose else (3, 4, 3, features))
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-4)
     grad_out = jax.random.normal(kg, got.shape)
     for a, b in zip(jax.tree.leaves(got_vjp(grad_out)), jax.tree.leaves(expected_vjp(grad_out))):

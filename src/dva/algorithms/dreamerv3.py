@@ -305,23 +305,29 @@ class DreamerV3:
 
         def step(carry, inputs):
             embedding_t, restart_t, action_t, key_t = inputs
-            posterior_key, prior_key = jax.random.split(key_t)
             latent = Latent(*carry, action=action_t, restart=restart_t)
             arrived, deter, posterior = self.observe(model, latent, embedding_t, restart_t)
-            stoch = sample_onehot(posterior, posterior_key)
-            # the state the previous action led to: this one within an episode, the prior's guess
-            # where the auto-reset replaced that step's frame by the next episode's first
-            arrived_stoch = jnp.where(
-                restart_t[:, None, None], sample_onehot(self.prior(model, arrived), prior_key), stoch
-            )
-            outputs = (deter, stoch, self.prior(model, deter), posterior, features(arrived, arrived_stoch))
-            return (deter, stoch), outputs
+            stoch = sample_onehot(posterior, key_t)
+            return (deter, stoch), (deter, stoch, posterior, arrived)
 
         time_major = lambda x: jnp.swapaxes(x, 0, 1)
         initial = (jnp.zeros((batch, cfg.deter)), jnp.zeros((batch, cfg.stoch, cfg.classes)))
-        inputs = (time_major(embedding), time_major(restart), time_major(prev_action), jax.random.split(key, length))
-        _, (deter, stoch, prior, posterior, arrived) = jax.lax.scan(step, initial, inputs)
-        return tuple(map(time_major, (deter, stoch, prior, posterior, arrived)))
+        sequence_key, prior_key = jax.random.split(key)
+        inputs = (
+            time_major(embedding),
+            time_major(restart),
+            time_major(prev_action),
+            jax.random.split(sequence_key, length),
+        )
+        _, outputs = jax.lax.scan(step, initial, inputs)
+        deter, stoch, posterior, arrived = map(time_major, outputs)
+        # The priors need no step-by-step loop: one batched pass over all steps (faster than one
+        # per step inside the scan). The state the previous action led to is this one within an
+        # episode, the prior's guess where the auto-reset replaced that step's frame by the next
+        # episode's first.
+        prior, arrived_prior = jnp.split(self.prior(model, jnp.concatenate([deter, arrived])), 2)
+        arrived_stoch = jnp.where(restart[..., None, None], sample_onehot(arrived_prior, prior_key), stoch)
+        return deter, stoch, prior, posterior, features(arrived, arrived_stoch)
 
     def predicted_reward(self, model: dict, arrived: jax.Array) -> jax.Array:
         """The reward head's prediction for the steps that led to ``arrived`` (features)."""

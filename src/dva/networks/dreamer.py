@@ -73,8 +73,25 @@ def strided_conv4_transpose(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """``nn.ConvTranspose(…, (4, 4), (2, 2), "SAME")`` without its bias: each of the output's four
     pixel phases (row and column parity r, c) is a 2×2 stride-1 convolution of the padded input
     with the kernel taps ``kernel[r::2, c::2]``: no multiply-add touches the zeros of XLA's
-    input-dilated convolution, three quarters of its input."""
+    input-dilated convolution, three quarters of its input.
+
+    With few output features (≤ 16: the decoder's last two layers) the four phases are one 3×3
+    convolution with 4 × features outputs (each phase's taps in its 2×2 corner of the 3×3 window),
+    whose pixels are then put in place: 2.25× the multiply-adds, but half the time forward and
+    backward on the CPU, where interleaving four thin outputs costs more than the convolutions
+    (``benchmarks/dreamer_update.py``)."""
     padded, (n, height, width), features = _pad_one(x), x.shape[:3], kernel.shape[-1]
+    if features <= 16:
+        windows = jnp.zeros((3, 3) + kernel.shape[2:3] + (2, 2, features), kernel.dtype)
+        for r in (0, 1):
+            for c in (0, 1):  # output pixel (2m + r, 2m' + c) reads padded rows m + r + (0, 1)
+                windows = windows.at[r : r + 2, c : c + 2, :, r, c].set(kernel[r::2, c::2])
+        out = conv_valid(padded, windows.reshape(3, 3, -1, 4 * features), 1)  # (N, H, W, (r, c, F))
+        return (
+            out.reshape(n, height, width, 2, 2, features)
+            .transpose(0, 1, 3, 2, 4, 5)
+            .reshape(n, 2 * height, 2 * width, features)
+        )
     phases = [
         [conv_valid(padded[:, r : r + height + 1, c : c + width + 1], kernel[r::2, c::2], 1) for c in (0, 1)]
         for r in (0, 1)
