@@ -75,7 +75,7 @@ def strided_conv4_transpose(x: jax.Array, kernel: jax.Array) -> jax.Array:
     with the kernel taps ``kernel[r::2, c::2]``: no multiply-add touches the zeros of XLA's
     input-dilated convolution, three quarters of its input.
 
-    With few output features (≤ 16: the decoder's last two layers) the four phases are one 3×3
+    With few output features (≤ 16: the CPU preset decoder's last two layers) the four phases are one 3×3
     convolution with 4 × features outputs (each phase's taps in its 2×2 corner of the 3×3 window),
     whose pixels are then put in place: 2.25× the multiply-adds, but half the time forward and
     backward on the CPU, where interleaving four thin outputs costs more than the convolutions
