@@ -92,7 +92,7 @@ SHAC_CPU_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=4000) for task
 SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=7000) for task in LEGGED_TASKS}
 # D.Va's actor learns to read the pose from the frames far sooner when its encoder also predicts
 # the simulator's state (an auxiliary loss; the return's gradient still never passes through the
-# pixels): on Hopper ≥ 3000 after ≈ 0.2M env steps instead of 0.67–0.77M, on the Ant ≥ 1500 at 62
+# pixels): on Hopper ≥ 3000 after ≈ 0.2M env steps instead of 0.67–0.77M, on the Ant ≥ 1500 at 51–62
 # minutes where it stayed below in two hours, on the Humanoid 5× random after 205k env steps
 # instead of 486k (docs/results.md). Measured on those three robots; the others keep it off.
 DVA_CPU_TASKS: dict[str, dict] = {task: dict(state_prediction=10.0) for task in ("hopper", "ant", "humanoid")}
