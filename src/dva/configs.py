@@ -180,20 +180,21 @@ def dreamerv3_preset(task: str, preset: str) -> dict:
 # iteration on Cart-pole (state, 4 envs) takes 10.3 s on a shared CPU core, 5.4 s of it planning.
 # The CPU preset keeps the method (SimNorm latents, two-hot heads, a Q ensemble's random pairs,
 # MPPI with a policy prior, ρ-weighted 3-step rollouts, one update per agent step) at the
-# reference's smallest latent (128, which 48² frames give too) with two Q members as its "1M"
-# model, 128-wide networks, batch 64, and a planner of 128 samples (6 from the prior), 16 elites
-# and 3 refits: 0.31 s per iteration of 4 envs (0.14 s planning, 0.06 s per update) on a shared
-# core. With 256-wide networks, batch 128 and 256 samples × 4 refits an iteration took 0.93 s and
-# swing-up from the state was still below random after 5k env steps (10 minutes). A 100k-step
-# replay, as the other CPU presets': the reference's million 48² frames would take 6.9 GB, and as
-# much again in every checkpoint.
+# reference's smallest latent (128) with two Q members as its "1M" model, 128-wide networks,
+# batch 64, and a planner of 128 samples (6 from the prior), 16 elites and 3 refits: 0.31 s per
+# iteration of 4 envs (0.14 s planning, 0.06 s per update) on a shared core. With 256-wide
+# networks, batch 128 and 256 samples × 4 refits an iteration took 0.93 s and swing-up from the
+# state was still below random after 5k env steps (10 minutes). Pixels stay at the reference's
+# 64²: 48² leave its encoder a 2×2 grid (a 128-entry latent), and balance stayed below 1.5× random
+# for 47k env steps; at 64² (a 4×4 grid, 512 entries) it passed 1.9× random at 28k, for twice
+# the time per iteration. A 100k-step replay, as the other CPU presets': the reference's million
+# 64² frames would take 12 GB.
 TDMPC2_CPU = dict(
     replay_size=100_000,
     latent_dim=128,
     mlp_dim=128,
     num_q=2,
     batch_size=64,
-    image_size=48,
     num_samples=128,
     num_elites=16,
     num_pi_trajs=6,
