@@ -217,7 +217,7 @@ def test_bad_tdmpc2_settings_name_the_value():
         make_config("cartpole_balance", "tdmpc2", "cpu", num_q=1)
     with pytest.raises(ValueError, match="num_elites = 300, .* num_samples = 128"):
         make_config("cartpole_balance", "tdmpc2", "cpu", num_elites=300)
-    with pytest.raises(ValueError, match="simnorm_group = 7 .* 128 entries"):
+    with pytest.raises(ValueError, match="simnorm_group = 7 .* 512 entries"):
         make_config("cartpole_balance", "tdmpc2", "cpu", simnorm_group=7)
     with pytest.raises(ValueError, match="image_size = 32 .* ≥ 39"):
         make_config("cartpole_balance", "tdmpc2", "cpu", image_size=32)
