@@ -98,6 +98,15 @@ def test_figures_compare_the_paper_settings():
             figure_settings("ablation-frames", ["hopper"], frames=bad)
     with pytest.raises(ValueError, match=r"frames = \[1\] is only allowed with ablation-frames, not with 'fig4'"):
         figure_settings("fig4", ["hopper"], frames=[1])
+    assert [s.slug for s in figure_settings("fig4", ["hopper"], algos=["drqv2", "dva"])] == [
+        "hopper_dva",
+        "hopper_drqv2",
+    ]
+    for bad in ([], ["dva", "dva"], ["shac"]):
+        with pytest.raises(
+            ValueError, match=r"algos = \[.*\] is not allowed for fig4; use distinct names from: dva, drqv2"
+        ):
+            figure_settings("fig4", ["hopper"], algos=bad)
 
 
 def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):

@@ -110,7 +110,7 @@ OVERRIDES = {
 class TrainOptions:
     """Train a policy: D.Va (pixels, decoupled gradient), SHAC (state, full), DPG on state, visual
     SHAC (pixels from the differentiable renderer, full gradient), or a baseline (DrQ-v2, CURL,
-    state-to-visual DAgger, DreamerV3 from pixels or the state)."""
+    state-to-visual DAgger, DreamerV3 or TD-MPC2 from pixels or the state)."""
 
     task: str = "cartpole_swingup"
     algo: AlgoName = "dva"
@@ -318,17 +318,19 @@ class CompareCommand(ManyRuns):
     after a crash, or with more seeds or minutes, only trains what is missing."""
 
     figure: tyro.conf.Positional[FigureName]
-    """fig4: D.Va vs DrQ-v2, CURL and DreamerV3; fig6: D.Va vs state-to-visual DAgger
+    """fig4: D.Va vs DrQ-v2, CURL, DreamerV3 and TD-MPC2; fig6: D.Va vs state-to-visual DAgger
     (teacher's time included); fig7: D.Va vs visual SHAC; fig13: SHAC vs DPG on the state;
     ablation-value: D.Va without its critic; ablation-frames: D.Va with 1–6 stacked frames."""
     tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
     frames: list[int] | None = None
     """ablation-frames only: the stack sizes to compare (default 1 2 3 4 5 6)."""
+    algos: list[str] | None = None
+    """Run only these of the figure's algorithms (e.g. dva drqv2; default: all of them)."""
 
     def run(self) -> None:
         from dva.analysis.compare import figure_settings, run_settings
 
-        settings = figure_settings(self.figure, self.tasks, self.frames)
+        settings = figure_settings(self.figure, self.tasks, self.frames, self.algos)
         paths, markdown = run_settings(settings, self.out / self.figure, **self.run_options())
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 

@@ -57,7 +57,9 @@ class Setting:
         return re.sub(r"[^a-z0-9]+", "_", f"{self.task} {self.label}".lower()).strip("_")
 
 
-def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None = None) -> list[Setting]:
+def figure_settings(
+    figure: str, tasks: list[str], frames: Sequence[int] | None = None, algos: Sequence[str] | None = None
+) -> list[Setting]:
     """The settings a figure compares on each of ``tasks``.
 
     fig4: D.Va against the model-free (DrQ-v2, CURL) and model-based (DreamerV3, TD-MPC2) visual
@@ -65,6 +67,8 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
     visual SHAC; fig13: SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels);
     ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
     stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable).
+    ``algos`` keeps only the settings of those algorithms (e.g. fig4's dva and drqv2 where the
+    model-based baselines would not fit the budget).
     """
     if figure not in FIGURES:
         raise ValueError(f"figure {figure!r} is not allowed; use one of: {', '.join(FIGURES)}")
@@ -82,13 +86,20 @@ def figure_settings(figure: str, tasks: list[str], frames: Sequence[int] | None 
             for k in (FRAME_STACKS if frames is None else frames)
         ]
     else:
-        algos = {
+        compared = {
             "fig4": ("dva", "drqv2", "curl", "dreamerv3", "tdmpc2"),
             "fig6": ("dva", "dagger"),
             "fig7": ("dva", "shac-pixels"),
             "fig13": ("shac", "dpg-state"),
         }[figure]
-        per_task = [(algo, algo, ()) for algo in algos]
+        per_task = [(algo, algo, ()) for algo in compared]
+    if algos is not None:
+        allowed = list(dict.fromkeys(algo for _, algo, _ in per_task))
+        if not algos or len(set(algos)) != len(algos) or not set(algos) <= set(allowed):
+            raise ValueError(
+                f"algos = {list(algos)} is not allowed for {figure}; use distinct names from: {', '.join(allowed)}"
+            )
+        per_task = [entry for entry in per_task if entry[1] in algos]
     return [Setting(label, task, algo, overrides) for task in tasks for label, algo, overrides in per_task]
 
 
