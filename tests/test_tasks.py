@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dva.tasks import make_task
+from dva.tasks.physics import joint_torques
 
 
 def data_with(task, qpos, qvel):
@@ -57,11 +58,39 @@ def test_hopper_reward_above_and_below_target_height():
     assert bool(task.is_terminated(data_with(task, [0.0, -0.46, 0, 0, 0, 0], [0.0] * 6)))
 
 
-def test_cheetah_reward_is_forward_velocity():
+def test_cheetah_reward_penalises_actions_as_the_reference():
     task = make_task("cheetah")
     data = data_with(task, task.mj_model.qpos0, [2.5] + [0.3] * 8)
-    assert float(task.reward(data, jnp.ones(6))) == pytest.approx(2.5, rel=1e-6)
+    action = jnp.array([1.0, -0.5, 0.0, 0.5, 0.0, 0.0])
+    # v_x − 0.1·(1 + 0.25 + 0.25)
+    assert float(task.reward(data, action)) == pytest.approx(2.5 - 0.15, rel=1e-6)
     assert not bool(task.is_terminated(data_with(task, np.full(9, -5.0), np.zeros(9))))
+
+
+def test_cheetah_has_the_reference_assets_joint_ranges_and_start_height():
+    task = make_task("cheetah")
+    model = task.mj_model
+    ranges = {
+        name: model.jnt_range[model.joint(name).id].tolist()
+        for name in ("bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot")
+    }
+    assert ranges == {
+        "bthigh": [-0.52, 1.05],
+        "bshin": [-0.785, 0.785],
+        "bfoot": [-0.4, 0.785],
+        "fthigh": [-1.5, 0.8],
+        "fshin": [-1.2, 1.1],
+        "ffoot": [-3.1, -0.3],
+    }
+    assert model.body("torso").pos[2] == pytest.approx(0.8)
+    # At q = 0 the front foot is 0.3 rad past its upper limit: the limit spring (1e3 N·m/rad)
+    # pushes it back with 300 N·m, as the reference's robot does.
+    qpos, qvel = jnp.asarray(model.qpos0), jnp.zeros(model.nv)
+    torques = joint_torques(qpos, qvel, task.penalty_contact, task.joints)
+    ffoot = model.jnt_dofadr[model.joint("ffoot").id]
+    assert float(torques[ffoot]) == pytest.approx(-300.0, rel=1e-5)
+    others = np.delete(np.asarray(torques), ffoot)
+    np.testing.assert_allclose(others, 0.0, atol=1e-6)  # every other joint rests in its range
 
 
 def test_ant_reward_with_torso_turned_left():

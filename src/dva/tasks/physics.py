@@ -164,9 +164,8 @@ def _is_ancestor(model: mujoco.MjModel, ancestor: int, body: int) -> bool:
 def contact_state(data: mjx.Data, points: ContactPoints) -> tuple[jax.Array, jax.Array]:
     """Contact positions (P, 3) and penetration depths (P,) of the points.
 
-    A sphere's contact position is its lowest point (centre − radius·ẑ): forces act there, so
-    friction also turns the body, and a rolling sphere does not slip (dflex applies them at the
-    centre). Needs the kinematics of ``data`` (``xpos``, ``xmat``).
+    A sphere's contact position is its lowest point (centre − radius·ẑ), as in dflex: forces act
+    there, so friction also turns the body. Needs the kinematics of ``data`` (``xpos``, ``xmat``).
     """
     body, radius = jnp.asarray(points.body), jnp.asarray(points.radius)
     centre = data.xpos[body] + jnp.einsum("pij,pj->pi", data.xmat[body], jnp.asarray(points.local))

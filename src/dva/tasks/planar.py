@@ -69,9 +69,11 @@ class Hopper(PlanarRunner):
 
 
 class Cheetah(PlanarRunner):
-    """Half-Cheetah (6 actuated joints): ``R = v_x``, as SHAC's cheetah (its action penalty is 0).
+    """Half-Cheetah (6 actuated joints): ``R = v_x − 0.1‖a‖²``, as SHAC's cheetah.
 
-    Never terminates; episodes run 1000 steps.
+    The reference asset's joint ranges are kept as they are: the front foot's is −3.1…−0.3 rad,
+    so at q = 0 it starts 0.3 rad past its limit and the limit spring folds it at once. The torso
+    starts 0.8 m above the floor. Never terminates; episodes run 1000 steps.
     """
 
     name = "cheetah"
@@ -82,8 +84,10 @@ class Cheetah(PlanarRunner):
     reset_noise = 0.1
     reset_velocity = 0.25
 
+    action_penalty = 0.1
+
     def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:
-        return data.qvel[0]
+        return data.qvel[0] - self.action_penalty * jnp.sum(action**2)
 
     def is_terminated(self, data: mjx.Data) -> jax.Array:
         return jnp.zeros((), bool)
