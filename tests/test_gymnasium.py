@@ -146,3 +146,14 @@ def test_bad_arguments_name_the_value_and_what_is_allowed(state_env):
         state_env.step(np.full((NUM_ENVS, 1), np.nan))
     with pytest.raises(ValueError, match="options .* are not supported"):
         state_env.reset(options={"reset_mask": np.ones(NUM_ENVS, bool)})
+
+
+@pytest.mark.parametrize("task", ["cartpole_swingup", "hopper"])
+@pytest.mark.parametrize("obs_type", ["state", "pixels"])
+def test_gymnasiums_own_env_checker_passes(task, obs_type):
+    """Gymnasium's ``check_env`` (seeding, spaces, determinism under a seed, step and reset
+    signatures) on a single environment of a planar task without and with contacts."""
+    from gymnasium.utils.env_checker import check_env
+
+    env = gymnasium.make(env_id(task), obs_type=obs_type, image_size=16)
+    check_env(env.unwrapped, skip_render_check=True)

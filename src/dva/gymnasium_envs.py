@@ -190,6 +190,7 @@ class DvaEnv(gymnasium.Env):
         self.render_mode = self.vector.render_mode
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)  # seeds self.np_random, as Gymnasium's contract asks
         obs, info = self.vector.reset(seed=seed, options=options)
         return _first(obs), info
 
