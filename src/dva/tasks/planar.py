@@ -84,10 +84,8 @@ class Cheetah(PlanarRunner):
     reset_noise = 0.1
     reset_velocity = 0.25
 
-    action_penalty = 0.1
-
     def reward(self, data: mjx.Data, action: jax.Array) -> jax.Array:
-        return data.qvel[0] - self.action_penalty * jnp.sum(action**2)
+        return data.qvel[0] - 0.1 * jnp.sum(action**2)
 
     def is_terminated(self, data: mjx.Data) -> jax.Array:
         return jnp.zeros((), bool)
