@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import gymnasium
 import jax
@@ -51,7 +52,9 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=["cartpole_swingup", "hopper"])
     parser.add_argument("--num-envs", nargs="+", type=int, default=[16, 256])
     parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--csv", type=Path, help="also write the rows to this CSV file")
     args = parser.parse_args()
+    records = []
     print(f"device: {jax.devices()[0].device_kind}")
     print("| task | envs | task.step env steps/s | gymnasium env steps/s | gymnasium / task.step |")
     print("|---|---|---|---|---|")
@@ -59,6 +62,11 @@ def main() -> None:
         for num_envs in args.num_envs:
             raw, wrapped = measure(task, num_envs, args.steps)
             print(f"| {task} | {num_envs} | {raw:,.0f} | {wrapped:,.0f} | {wrapped / raw:.2f} |", flush=True)
+            records.append(dict(task=task, num_envs=num_envs, task_step=raw, gymnasium=wrapped, ratio=wrapped / raw))
+    if args.csv:
+        from dva.analysis.bench import write_csv
+
+        print(f"wrote {write_csv(args.csv, records)}")
 
 
 if __name__ == "__main__":

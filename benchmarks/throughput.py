@@ -2,7 +2,7 @@
 frames/s, peak memory. CPU by default; the same script uses a GPU when JAX sees one.
 
     python benchmarks/throughput.py [--tasks cartpole_swingup hopper] [--physics penalty mujoco]
-                                    [--num-envs 64] [--no-render]
+                                    [--num-envs 64] [--no-render] [--csv throughput.csv]
 
 The backward is the gradient of the rollout's summed reward with respect to its actions, less the
 forward; "bwd / fwd" is their ratio. ``--no-render`` times the physics alone.
@@ -16,6 +16,7 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 HORIZON = 32
 
@@ -66,15 +67,16 @@ def main() -> None:
     parser.add_argument("--physics", nargs="+", default=list(PHYSICS), choices=list(PHYSICS))
     parser.add_argument("--num-envs", type=int, default=64)
     parser.add_argument("--render", action=argparse.BooleanOptionalAction, default=True)
+    parser.add_argument("--csv", type=Path, help="also write the rows (unrounded) to this CSV file")
     parser.add_argument("--one", help=argparse.SUPPRESS)  # internal: measure one task, print JSON
     args = parser.parse_args()
     if args.one:
         print(json.dumps(measure(args.one, args.physics[0], args.num_envs, args.render)))
         return
 
-    from dva.analysis.bench import machine_description, markdown_table
+    from dva.analysis.bench import machine_description, markdown_table, write_csv
 
-    rows = []
+    rows, records = [], []
     for name, physics in [(name, physics) for name in args.tasks for physics in args.physics]:
         out = subprocess.run(
             [
@@ -94,6 +96,20 @@ def main() -> None:
         )
         r = json.loads(out.stdout.strip().splitlines()[-1])
         backward = r["rollout_fwd_bwd_s"] - r["rollout_s"]
+        records.append(
+            dict(
+                task=name,
+                physics=physics,
+                num_envs=args.num_envs,
+                steps_per_s=r["steps_per_s"],
+                forward_s=r["rollout_s"],
+                backward_s=backward,
+                backward_over_forward=backward / r["rollout_s"],
+                frames_per_s=r["frames_per_s"],
+                peak_mb=r["peak_mb"],
+                compile_s=r["compile_s"],
+            )
+        )
         rows.append(
             [
                 name,
@@ -125,6 +141,9 @@ def main() -> None:
             rows,
         )
     )
+    if args.csv:  # the device named only now: JAX in this process would take GPU memory from the tasks'
+        device = machine_description()
+        print(f"wrote {write_csv(args.csv, [dict(record, device=device) for record in records])}")
 
 
 if __name__ == "__main__":
