@@ -3,10 +3,12 @@
     python examples/ppo_gymnasium.py --task cartpole_swingup --total-steps 600000
 
 Nothing here is dva-specific but the environment id: ``gymnasium.make_vec("dva/<task>-v0")``
-hands out NumPy batches like any Gymnasium vector env, and episode statistics come from
-Gymnasium's own ``RecordEpisodeStatistics`` wrapper. The environments reset in the step that ends
-an episode (``AutoresetMode.SAME_STEP``), so a truncated episode's last reward bootstraps from
-the value of ``info["final_obs"]``.
+hands out NumPy batches like any Gymnasium vector env, wrapped as CleanRL wraps its continuous
+control envs (Gymnasium's own ``RecordEpisodeStatistics``, ``ClipAction``,
+``NormalizeObservation``, ``TransformObservation``, ``NormalizeReward``, ``TransformReward``).
+The envs auto-reset on the step after an episode ends (``AutoresetMode.NEXT_STEP``, Gymnasium's
+default): the ending step returns the observation it reached, so a truncated episode bootstraps
+from its value, and the reset step that follows is not a transition and is left out of the loss.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import numpy as np
 import optax
 import tyro
 
-import dva  # noqa: F401  (registers dva/<task>-v0)
+import dva
 
 
 @dataclasses.dataclass
@@ -40,7 +42,6 @@ class Args:
     clip_coef: float = 0.2
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
-    reward_scale: float = 0.1  # dva's rewards are up to ≈ 10 per step
 
 
 class ActorCritic(nn.Module):
@@ -64,8 +65,14 @@ def log_prob(mean, log_std, action):
 
 def main(args: Args) -> list[tuple[int, float]]:
     """Train; returns (env steps, mean return of the episodes finished in that rollout) per rollout."""
+    vector = gymnasium.wrappers.vector
     envs = gymnasium.make_vec(f"dva/{args.task}-v0", num_envs=args.num_envs)
-    envs = gymnasium.wrappers.vector.RecordEpisodeStatistics(envs)
+    envs = vector.RecordEpisodeStatistics(envs)  # the unnormalised returns
+    envs = vector.ClipAction(envs)
+    envs = vector.NormalizeObservation(envs)
+    envs = vector.TransformObservation(envs, lambda obs: np.clip(obs, -10, 10))
+    envs = vector.NormalizeReward(envs, gamma=args.gamma)
+    envs = vector.TransformReward(envs, lambda reward: np.clip(reward, -10, 10))
     model = ActorCritic(envs.single_action_space.shape[0])
     key = jax.random.PRNGKey(args.seed)
     obs, _ = envs.reset(seed=args.seed)
@@ -86,9 +93,14 @@ def main(args: Args) -> list[tuple[int, float]]:
         def loss_fn(params, mb):
             mean, log_std, value = model.apply(params, mb["obs"])
             ratio = jnp.exp(log_prob(mean, log_std, mb["action"]) - mb["log_prob"])
-            adv = (mb["advantage"] - mb["advantage"].mean()) / (mb["advantage"].std() + 1e-8)
+            valid = mb["valid"]  # 0 on the reset steps: no transition
+            count = jnp.maximum(valid.sum(), 1.0)
+            adv_mean = jnp.sum(valid * mb["advantage"]) / count
+            adv_std = jnp.sqrt(jnp.sum(valid * (mb["advantage"] - adv_mean) ** 2) / count)
+            adv = (mb["advantage"] - adv_mean) / (adv_std + 1e-8)
             policy_loss = jnp.maximum(-adv * ratio, -adv * jnp.clip(ratio, 1 - args.clip_coef, 1 + args.clip_coef))
-            return policy_loss.mean() + args.vf_coef * 0.5 * jnp.mean((value - mb["return"]) ** 2)
+            value_loss = 0.5 * (value - mb["return"]) ** 2
+            return jnp.sum(valid * (policy_loss + args.vf_coef * value_loss)) / count
 
         def epoch(carry, key):
             order = jax.random.permutation(key, len(batch["obs"])).reshape(args.num_minibatches, -1)
@@ -104,37 +116,41 @@ def main(args: Args) -> list[tuple[int, float]]:
         return jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, args.update_epochs))[0]
 
     @jax.jit
-    def advantages(rewards, values, next_value, dones):
+    def advantages(rewards, values, next_value, terminated, dones):
+        """GAE, the chain cut where an episode ended; the step after an ending holds the observation
+        it reached, so a truncated episode bootstraps from that observation's value."""
+
         def back(carry, x):
             gae, next_v = carry
-            r, v, d = x
-            delta = r + args.gamma * next_v * (1 - d) - v
+            r, v, term, d = x
+            delta = r + args.gamma * next_v * (1 - term) - v
             gae = delta + args.gamma * args.gae_lambda * (1 - d) * gae
             return (gae, v), gae
 
-        _, adv = jax.lax.scan(back, (jnp.zeros_like(next_value), next_value), (rewards, values, dones), reverse=True)
+        xs = (rewards, values, terminated, dones)
+        _, adv = jax.lax.scan(back, (jnp.zeros_like(next_value), next_value), xs, reverse=True)
         return adv, adv + values
 
     curve, start = [], time.time()
+    autoreset = np.zeros(args.num_envs, bool)  # the envs whose next step is a reset, not a transition
     for update_index in range(num_updates):
-        rollout = {name: [] for name in ("obs", "action", "log_prob", "value", "reward", "done")}
+        names = ("obs", "action", "log_prob", "value", "reward", "terminated", "done", "valid")
+        rollout = {name: [] for name in names}
         returns = []
         for _ in range(args.num_steps):
             key, step_key = jax.random.split(key)
             action, logp, value = act(params, obs, step_key)
             next_obs, reward, terminated, truncated, info = envs.step(np.asarray(action))
-            reward = args.reward_scale * reward
-            if truncated.any():  # bootstrap a cut-off episode from the state it reached
-                final_value = np.asarray(act(params, info["final_obs"], step_key)[2])
-                reward = reward + args.gamma * np.where(truncated, final_value, 0.0)
-            for name, x in zip(rollout, (obs, action, logp, value, reward, terminated | truncated)):
+            row = (obs, action, logp, value, reward, terminated, terminated | truncated, ~autoreset)
+            for name, x in zip(names, row):
                 rollout[name].append(np.asarray(x, np.float32))
             if "episode" in info:
                 returns += list(info["episode"]["r"][info["_episode"]])
-            obs = next_obs
+            obs, autoreset = next_obs, terminated | truncated
         data = {name: np.stack(xs) for name, xs in rollout.items()}
-        adv, ret = advantages(data["reward"], data["value"], act(params, obs, key)[2], data["done"])
-        batch = {"obs": data["obs"], "action": data["action"], "log_prob": data["log_prob"]}
+        next_value = act(params, obs, key)[2]
+        adv, ret = advantages(data["reward"], data["value"], next_value, data["terminated"], data["done"])
+        batch = {name: data[name] for name in ("obs", "action", "log_prob", "valid")}
         batch = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), dict(batch, advantage=adv, **{"return": ret}))
         key, update_key = jax.random.split(key)
         params, opt_state = update(params, opt_state, batch, update_key)
@@ -147,4 +163,5 @@ def main(args: Args) -> list[tuple[int, float]]:
 
 
 if __name__ == "__main__":
+    dva.configure()  # before JAX computes: the CPU convolution flags, compile caches
     main(tyro.cli(Args))

@@ -1,11 +1,16 @@
-"""The Gymnasium environments: registration, spaces, seeding, same-step autoreset with the final
-observation (state and frame stack), termination against truncation, and bad input."""
+"""The Gymnasium environments: registration, spaces, seeding, the three autoreset modes as
+Gymnasium defines them (state and frame stack), termination against truncation, Gymnasium's own
+vector wrappers and env checker, and bad input."""
 
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import gymnasium
 import numpy as np
 import pytest
+from gymnasium.vector import AutoresetMode
 
 import dva  # noqa: F401  (registers dva/<task>-v0)
 from dva.gymnasium_envs import TASK_NAMES, DvaEnv, DvaVectorEnv, env_id
@@ -16,14 +21,29 @@ NUM_ENVS = 2
 
 @pytest.fixture(scope="module")
 def state_env():
-    return gymnasium.make_vec("dva/cartpole_swingup-v0", num_envs=NUM_ENVS)
+    return gymnasium.make_vec("dva/cartpole_swingup-v0", num_envs=NUM_ENVS, autoreset_mode=AutoresetMode.SAME_STEP)
 
 
 @pytest.fixture(scope="module")
 def pixel_env():
     return gymnasium.make_vec(
+        "dva/cartpole_swingup-v0",
+        num_envs=NUM_ENVS,
+        obs_type="both",
+        image_size=16,
+        frame_stack=2,
+        autoreset_mode=AutoresetMode.SAME_STEP,
+    )
+
+
+@pytest.fixture(scope="module")
+def next_step_env():
+    """Gymnasium's default mode, with pixels."""
+    env = gymnasium.make_vec(
         "dva/cartpole_swingup-v0", num_envs=NUM_ENVS, obs_type="both", image_size=16, frame_stack=2
     )
+    assert env.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
+    return env
 
 
 def test_every_task_is_registered_with_a_vector_entry_point():
@@ -118,6 +138,69 @@ def test_the_final_frame_stack_continues_the_previous_one(pixel_env):
     assert info["final_obs"]["state"][env, 0] >= 2.5
 
 
+def test_next_step_returns_the_reached_observation_then_resets_on_the_next_step(next_step_env):
+    """Gymnasium's NEXT_STEP: the ending step returns the observation (and frame stack) it reached;
+    the next step ignores that sub-environment's action and returns its new episode's first
+    observation with reward 0 and no flags, while the others step on."""
+    previous, obs, reward, terminated, truncated, info = push_off_the_rail(next_step_env)
+    ended = np.flatnonzero(terminated)
+    running = np.flatnonzero(~terminated)
+    assert len(ended) and info == {} and not truncated.any()
+    assert np.all(obs["state"][ended, 0] >= 2.5) and np.all(reward[ended] != 0)
+    np.testing.assert_array_equal(obs["pixels"][ended][..., :3], previous["pixels"][ended][..., 3:])
+    after, reward, terminated, truncated, info = next_step_env.step(np.ones((NUM_ENVS, 1), np.float32))
+    assert np.all(np.abs(after["state"][ended, 0]) < 0.5) and np.all(reward[ended] == 0)
+    assert not terminated[ended].any() and not truncated[ended].any() and info == {}
+    restarted = after["pixels"][ended]
+    np.testing.assert_array_equal(restarted[..., :3], restarted[..., 3:])  # one frame, repeated
+    assert np.all(reward[running] != 0) and np.all(after["state"][running, 0] != obs["state"][running, 0])
+    after2, reward, *_ = next_step_env.step(np.zeros((NUM_ENVS, 1), np.float32))
+    assert np.all(reward[ended] != 0) and np.all(after2["state"][ended, 0] != after["state"][ended, 0])
+
+
+def test_disabled_autoreset_waits_for_a_masked_reset():
+    """DISABLED: the ending step returns the observation it reached; reset with a mask restarts
+    only the masked sub-environments and leaves the others' observations as they were."""
+    env = gymnasium.make_vec("dva/cartpole_swingup-v0", num_envs=NUM_ENVS, autoreset_mode="DISABLED")
+    assert env.metadata["autoreset_mode"] == AutoresetMode.DISABLED
+    _, obs, _, terminated, _, info = push_off_the_rail(env)
+    ended = np.flatnonzero(terminated)
+    assert info == {} and np.all(obs[ended, 0] >= 2.5)
+    reset_obs, _ = env.reset(options={"reset_mask": terminated})
+    assert np.all(np.abs(reset_obs[ended, 0]) < 0.5)
+    np.testing.assert_array_equal(reset_obs[~terminated], obs[~terminated])
+    _, reward, *_ = env.step(np.zeros((NUM_ENVS, 1), np.float32))
+    assert np.all(reward != 0)
+
+
+def test_gymnasiums_vector_wrappers_run_episodes():
+    """The wrappers CleanRL stacks, on the default (NEXT_STEP) env, through several episodes."""
+    vector = gymnasium.wrappers.vector
+    env = gymnasium.make_vec("dva/cartpole_swingup-v0", num_envs=NUM_ENVS)
+    env = vector.RecordEpisodeStatistics(env)
+    env = vector.ClipAction(env)
+    env = vector.NormalizeObservation(env)
+    env = vector.TransformObservation(env, lambda obs: np.clip(obs, -10, 10))
+    env = vector.NormalizeReward(env)
+    obs, _ = env.reset(seed=0)
+    episodes = []
+    rng = np.random.default_rng(0)
+    for _ in range(3 * 240 + 3):
+        obs, reward, terminated, truncated, info = env.step(rng.uniform(-2, 2, (NUM_ENVS, 1)))
+        assert np.isfinite(obs).all() and np.abs(obs).max() <= 10 and np.isfinite(reward).all()
+        if "episode" in info:
+            episodes += list(info["episode"]["l"][info["_episode"]])
+    assert len(episodes) >= 3 * NUM_ENVS and all(0 < length <= 240 for length in episodes)
+    assert abs(float(obs.mean())) < 3  # normalised
+
+
+def test_gymnasium_imports_the_package_from_the_env_id():
+    """Gymnasium's module-import form, in a fresh interpreter that never imported dva."""
+    code = "import gymnasium; env = gymnasium.make('dva:dva/hopper-v0'); print(env.reset(seed=0)[0].shape)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip().endswith("(11,)"), out.stderr
+
+
 def test_one_environment_returns_the_final_observation_and_renders():
     env = gymnasium.make("dva/cartpole_swingup-v0", render_mode="rgb_array", render_size=32)
     assert isinstance(env.unwrapped, DvaEnv)
@@ -144,15 +227,19 @@ def test_bad_arguments_name_the_value_and_what_is_allowed(state_env):
         state_env.step(np.zeros((3, 1)))
     with pytest.raises(ValueError, match="non-finite"):
         state_env.step(np.full((NUM_ENVS, 1), np.nan))
-    with pytest.raises(ValueError, match="options .* are not supported"):
-        state_env.reset(options={"reset_mask": np.ones(NUM_ENVS, bool)})
+    with pytest.raises(ValueError, match=r"reset options \['seed_all'\] are not supported"):
+        state_env.reset(options={"seed_all": True})
+    with pytest.raises(ValueError, match=r"reset_mask must be a bool array of shape \(2,\)"):
+        state_env.reset(options={"reset_mask": np.ones(3, bool)})
+    with pytest.raises(ValueError, match="autoreset_mode 'LATER' is not allowed; use one of NEXT_STEP, SAME_STEP"):
+        DvaVectorEnv("hopper", autoreset_mode="LATER")
 
 
-@pytest.mark.parametrize("task", ["cartpole_swingup", "hopper"])
+@pytest.mark.parametrize("task", TASK_NAMES)
 @pytest.mark.parametrize("obs_type", ["state", "pixels"])
 def test_gymnasiums_own_env_checker_passes(task, obs_type):
     """Gymnasium's ``check_env`` (seeding, spaces, determinism under a seed, step and reset
-    signatures) on a single environment of a planar task without and with contacts."""
+    signatures) on a single environment of every task and observation type."""
     from gymnasium.utils.env_checker import check_env
 
     env = gymnasium.make(env_id(task), obs_type=obs_type, image_size=16)

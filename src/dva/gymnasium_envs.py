@@ -10,9 +10,19 @@ Keyword arguments of both: ``obs_type`` ``"state"`` (the task's state vector, fl
 ``"both"`` (a ``Dict`` of the two); ``image_size`` and ``frame_stack`` of the pixels; ``physics``
 (the contact model, ``penalty`` or ``mujoco``); ``render_mode="rgb_array"`` with ``render_size``.
 Actions are in ``[-1, 1]`` (clipped). Episodes end by termination (the task's failure test) or
-truncation at the task's episode length. The vector env resets finished sub-environments in the
-same step (``AutoresetMode.SAME_STEP``): the returned observation is the next episode's first,
-and ``info["final_obs"]`` (valid where ``info["_final_obs"]``) is the one the step reached.
+truncation at the task's episode length. ``autoreset_mode`` says what the vector env does with a
+finished sub-environment, as Gymnasium defines it:
+
+- ``NEXT_STEP`` (the default, Gymnasium's): the step that ends an episode returns the observation
+  it reached; the next step resets that sub-environment instead of stepping it (its action is
+  ignored) and returns the new episode's first observation with reward 0 and both flags False.
+- ``SAME_STEP``: the step that ends an episode returns the next episode's first observation, and
+  ``info["final_obs"]`` (valid where ``info["_final_obs"]``) is the one the step reached.
+- ``DISABLED``: the step that ends an episode returns the observation it reached; the caller
+  resets it with ``reset(options={"reset_mask": mask})``.
+
+With pixels, the frame stack an ending step reached is the previous stack plus a frame of the
+final pose; a new episode's stack is its first frame repeated.
 """
 
 from __future__ import annotations
@@ -42,6 +52,15 @@ TASK_NAMES: tuple[str, ...] = (
 )
 
 
+def autoreset_mode_of(value: AutoresetMode | str) -> AutoresetMode:
+    """An :class:`AutoresetMode` from itself, its name (``"NEXT_STEP"``) or its value (``"NextStep"``)."""
+    for mode in AutoresetMode:
+        if value in (mode, mode.name, mode.value):
+            return mode
+    allowed = ", ".join(mode.name for mode in AutoresetMode)
+    raise ValueError(f"autoreset_mode {value!r} is not allowed; use one of {allowed} (gymnasium.vector.AutoresetMode)")
+
+
 def env_id(task: str) -> str:
     """The Gymnasium id of ``task``."""
     return f"dva/{task}-v0"
@@ -63,7 +82,7 @@ def register_envs() -> None:
 class DvaVectorEnv(gymnasium.vector.VectorEnv):
     """``num_envs`` copies of a dva task behind Gymnasium's vector API; see the module docstring."""
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"], "render_fps": 60}
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 60}
 
     def __init__(
         self,
@@ -76,7 +95,10 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         render_mode: str | None = None,
         render_size: int = 256,
         array_type: str = "numpy",
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ) -> None:
+        self.autoreset_mode = autoreset_mode_of(autoreset_mode)
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         if obs_type not in OBS_TYPES:
             raise ValueError(f"obs_type {obs_type!r} is not allowed; use one of {', '.join(OBS_TYPES)}")
         if array_type not in ARRAY_TYPES:
@@ -108,40 +130,67 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, num_envs)
 
         self._reset = jax.jit(self.env.reset)
-        self._step = jax.jit(self._step_and_observe)
+        self._step = jax.jit(self._step_and_observe, static_argnums=3)
         self._state = None
         self._key = None
+        self._held = np.zeros(num_envs, bool)  # NEXT_STEP: reset on the next step instead of stepping
 
     # ---- the jitted pieces ----------------------------------------------------------------------
     def _observation(self, state: jax.Array, pixels: jax.Array) -> Any:
         return {"state": state, "pixels": pixels, "both": {"state": state, "pixels": pixels}}[self.obs_type]
 
-    def _step_and_observe(self, env, action):
+    def _step_and_observe(self, env, action, held, return_reached: bool):
+        """Step every sub-environment but the ``held`` ones (NEXT_STEP's reset step: their state
+        already holds the new episode, which this step returns with reward 0 and no flags).
+        Returns the state, the observation to return (with ``return_reached``, the one an ending
+        step reached) and the one each step reached."""
         from dva.rendering import push_frame
 
-        before = env.pixels
-        env = self.env.step(env, action)
-        final_pixels = env.pixels
+        stepped = self.env.step(env, action)
+        reached_pixels = stepped.pixels
         if self.env.has_pixels:
-            # Where an episode ended the returned stack restarts; the one the step reached is the
-            # previous stack plus a frame of the final pose, rendered only when some episode ended.
-            def reached(env):
-                return push_frame(before, self.env.renderer(env.final_qpos), jnp.zeros_like(env.done))
+            # Where an episode ended the stack restarts; the one the step reached is the previous
+            # stack plus a frame of the final pose, rendered only when some episode ended.
+            def reached(stepped):
+                return push_frame(env.pixels, self.env.renderer(stepped.final_qpos), jnp.zeros_like(stepped.done))
 
-            final_pixels = jax.lax.cond(jnp.any(env.done), reached, lambda env: env.pixels, env)
-        return env, self._observation(env.obs, env.pixels), self._observation(env.final_obs, final_pixels)
+            reached_pixels = jax.lax.cond(jnp.any(stepped.done), reached, lambda stepped: stepped.pixels, stepped)
+        unchanged = env.replace(
+            reward=jnp.zeros_like(env.reward),
+            terminated=jnp.zeros_like(env.terminated),
+            truncated=jnp.zeros_like(env.truncated),
+        )
+        env = select(held, unchanged, stepped)
+        obs = self._observation(env.obs, env.pixels)
+        final = self._observation(stepped.final_obs, reached_pixels)
+        if return_reached:
+            obs = select(env.done, final, obs)
+        return env, obs, final
 
     # ---- Gymnasium's API ------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start every sub-environment anew: ``(obs, info)``. ``seed`` makes the episodes, and all
-        the automatic resets after them, reproducible."""
+        """Start every sub-environment anew, or with ``options={"reset_mask": mask}`` only those
+        where ``mask`` is True: ``(obs, info)``. ``seed`` makes the episodes, and all the
+        automatic resets after them, reproducible."""
+        options = dict(options or {})
+        mask = options.pop("reset_mask", None)
         if options:
-            raise ValueError(f"options {options!r} are not supported; dva envs take no reset options")
+            raise ValueError(f"reset options {sorted(options)} are not supported; use reset_mask (or none)")
+        if mask is not None:
+            mask = np.asarray(mask)
+            if mask.shape != (self.num_envs,) or mask.dtype != bool:
+                raise ValueError(
+                    f"reset_mask must be a bool array of shape ({self.num_envs},); got {mask.dtype} {mask.shape}"
+                )
+            if self._state is None:
+                raise RuntimeError("call reset() without a reset_mask first")
         super().reset(seed=seed)  # seeds self.np_random
         if seed is not None or self._key is None:
             self._key = jax.random.PRNGKey(int(self.np_random.integers(2**31)) if seed is None else seed)
         self._key, key = jax.random.split(self._key)
-        self._state = self._reset(key)
+        fresh = self._reset(key)
+        self._state = fresh if mask is None else select(jnp.asarray(mask), fresh, self._state)
+        self._held = np.zeros(self.num_envs, bool) if mask is None else self._held & ~mask
         return self._out(self._observation(self._state.obs, self._state.pixels)), {}
 
     def step(self, actions):
@@ -153,12 +202,15 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
             raise ValueError(f"actions have shape {actions.shape}; this env needs {self.action_space.shape}")
         if self.array_type == "numpy" and not np.isfinite(actions).all():
             raise ValueError(f"actions contain non-finite values (NaN or inf): {actions}")
-        self._state, obs, final_obs = self._step(self._state, actions)
+        same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
+        self._state, obs, final_obs = self._step(self._state, actions, jnp.asarray(self._held), not same_step)
         state = self._state
         done = np.asarray(state.done)
         info = {}
-        if done.any():
+        if same_step and done.any():
             info = {"final_obs": self._out(final_obs), "_final_obs": done}
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            self._held = done
         return self._out(obs), self._out(state.reward), self._out(state.terminated), self._out(state.truncated), info
 
     def render(self) -> np.ndarray | None:
@@ -184,7 +236,7 @@ class DvaEnv(gymnasium.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 60}
 
     def __init__(self, task: str, **kwargs) -> None:
-        self.vector = DvaVectorEnv(task, num_envs=1, **kwargs)
+        self.vector = DvaVectorEnv(task, num_envs=1, autoreset_mode=AutoresetMode.DISABLED, **kwargs)
         self.observation_space = self.vector.single_observation_space
         self.action_space = self.vector.single_action_space
         self.render_mode = self.vector.render_mode
@@ -195,14 +247,21 @@ class DvaEnv(gymnasium.Env):
         return _first(obs), info
 
     def step(self, action):
-        obs, reward, terminated, truncated, info = self.vector.step(np.asarray(action)[None])
-        if "final_obs" in info:
-            obs = info["final_obs"]
+        obs, reward, terminated, truncated, _ = self.vector.step(np.asarray(action)[None])
         return _first(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), {}
 
     def render(self) -> np.ndarray | None:
         frames = self.vector.render()
         return None if frames is None else frames[0]
+
+
+def select(mask: jax.Array, on_true, on_false):
+    """Per sub-environment, ``on_true`` where ``mask`` else ``on_false`` (trees of batched arrays)."""
+
+    def one(a, b):
+        return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b)
+
+    return jax.tree.map(one, on_true, on_false)
 
 
 def _first(tree):
