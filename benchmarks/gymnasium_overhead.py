@@ -18,7 +18,7 @@ import gymnasium
 import jax
 import numpy as np
 
-import dva  # noqa: F401
+import dva
 
 
 def steps_per_second(step, steps: int) -> float:
@@ -70,4 +70,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    dva.configure()  # before JAX computes: the CPU convolution flags, compile caches
     main()

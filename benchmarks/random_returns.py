@@ -15,7 +15,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-import dva  # noqa: F401
+import dva
 from dva.analysis.bench import write_csv
 from dva.evaluation import random_policy_returns
 from dva.tasks import TASKS, make_task
@@ -39,4 +39,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    dva.configure()  # before JAX computes: the CPU convolution flags, compile caches
     main()

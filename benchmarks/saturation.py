@@ -72,4 +72,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    import dva
+
+    dva.configure()  # before JAX computes: the CPU convolution flags, compile caches
     main()

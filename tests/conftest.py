@@ -26,6 +26,10 @@ if not selects_slow_tests(sys.argv) and "xla_backend_optimization_level" not in 
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402
 
+import dva  # noqa: E402
+
+dva.configure()  # what the command line sets up: the encoder's CPU convolutions, compile caches
+
 from dva.tasks import TASKS, make_task  # noqa: E402
 
 ALL_TASKS = list(TASKS)

@@ -1,10 +1,14 @@
-"""dva: visual policies from parallel differentiable simulation (D.Va, SHAC and baselines)."""
+"""dva: visual policies from parallel differentiable simulation (D.Va, SHAC and baselines).
+
+Importing dva changes nothing in the process but Gymnasium's registry (``dva/<task>-v0``, how
+Gymnasium finds env packages). :func:`configure` sets what fast runs need; the ``dva`` command,
+its worker processes, the benchmarks and the examples call it first.
+"""
 
 from dva.gymnasium_envs import register_envs
-from dva.runtime import configure_caches, configure_xla
+from dva.runtime import configure
 
-configure_xla()
-configure_caches()
 register_envs()  # gymnasium.make_vec("dva/<task>-v0", ...)
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
+__all__ = ["configure", "register_envs"]

@@ -1,4 +1,5 @@
-"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``, ``compare``, ``analyze``."""
+"""The ``dva`` command line: ``dva tasks``, ``render``, ``train``, ``eval``, ``plot``, ``report``, ``compare``,
+``analyze``."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import tyro
 from dva.algorithms import ALGORITHMS, AlgoName
 from dva.analysis.compare import Backend, FigureName
 from dva.configs import PresetName
+from dva.runtime import configure
 from dva.tasks import TASKS, check_physics, check_task_name
 from dva.training import TrainingDiverged
 
@@ -282,6 +284,39 @@ class PlotCommand:
         print(markdown + f"wrote {path} and summary.md")
 
 
+@dataclasses.dataclass
+class ReportCommand:
+    """Regenerate the tables of docs/results.md, its summary and the README's status rows from the
+    data in docs/results/ (each section's section.toml says which); run it in the repository's root."""
+
+    check: bool = False
+    """Change nothing: print how the documents differ from their regenerated selves; exit 1 if they do."""
+    plots: bool = False
+    """Also redraw each section's learning curves from its CSV files."""
+    stamp: str | None = None
+    """A section just measured: record the hash of the code and configs it measures, and --commit."""
+    commit: str | None = None
+    """With --stamp: the commit of the code that made the data."""
+    root: Path = Path(".")
+    """The repository's root."""
+
+    def run(self) -> None:
+        from dva.analysis import report
+
+        if not (self.root / report.RESULTS).is_dir():
+            raise ValueError(f"{self.root.resolve()} has no {report.RESULTS}: run it in the repository's root")
+        if self.stamp is not None:
+            if self.commit is None:
+                raise ValueError("--stamp needs --commit: the commit of the code that made the data")
+            report.stamp(self.root, self.stamp, self.commit)
+        if self.check:
+            diff = report.differences(self.root)
+            print(diff or "the documents agree with their data")
+            raise SystemExit(1 if diff else 0)
+        for path in report.write(self.root, self.plots):
+            print(f"wrote {path}")
+
+
 @dataclasses.dataclass(kw_only=True)
 class ManyRuns:
     """What compare and sweep share: seeds, budget, where the runs go and what runs them."""
@@ -501,6 +536,7 @@ COMMANDS = {
     "train": TrainCommand,
     "eval": EvalCommand,
     "plot": PlotCommand,
+    "report": ReportCommand,
     "compare": CompareCommand,
     "sweep": SweepCommand,
     "analyze": AnalyzeCommand,
@@ -509,6 +545,7 @@ COMMANDS = {
 
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``dva`` console script."""
+    configure()  # before anything computes: JAX reads XLA_FLAGS once
     # As tyro.extras.subcommand_cli_from_dict, but with the analyze group's description set.
     command = tyro.cli(
         Union[

@@ -1,8 +1,9 @@
-"""Process-wide set-up: XLA's CPU convolutions, persistent compile caches and quiet Warp.
+"""Process-wide set-up, done by :func:`configure` and never on import: XLA's CPU convolutions,
+persistent compile caches and quiet Warp.
 
-Imported first by ``dva/__init__.py`` so that this runs before JAX starts its CPU client (it
-reads ``XLA_FLAGS`` once), before JAX compiles anything and before Warp is imported (Warp reads
-``WARP_CACHE_PATH`` at import time).
+Call ``dva.configure()`` at the start of a script, before JAX computes anything: JAX reads
+``XLA_FLAGS`` once, when it starts its CPU client, and Warp reads ``WARP_CACHE_PATH`` when it is
+imported. The ``dva`` command, its worker processes, the benchmarks and the examples call it.
 """
 
 from __future__ import annotations
@@ -52,3 +53,11 @@ def configure_caches() -> None:
         return
     warp.config.quiet = True  # no start-up banner on stdout
     warp.config.log_level = warp.LOG_WARNING  # no per-kernel "Module … load" lines
+
+
+def configure() -> None:
+    """Everything a fast run needs, for scripts that use dva: :func:`configure_xla` (the pixel
+    encoder's CPU convolutions) and :func:`configure_caches` (compile caches, quiet Warp).
+    Call it first; calling it again changes nothing."""
+    configure_xla()
+    configure_caches()

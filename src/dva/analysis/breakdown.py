@@ -6,15 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
-import matplotlib
+from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from dva.algorithms import build_agent, make_config  # noqa: E402
-from dva.algorithms.shac import SHACConfig  # noqa: E402
-from dva.analysis.bench import markdown_table, write_csv  # noqa: E402
-from dva.analysis.profile import iteration_breakdown, per_million_steps  # noqa: E402
+from dva.algorithms import build_agent, make_config
+from dva.algorithms.shac import SHACConfig
+from dva.analysis.bench import markdown_table, write_csv
+from dva.analysis.profile import iteration_breakdown, per_million_steps
 
 
 def measure_iteration(
@@ -46,7 +43,8 @@ def write_breakdown_report(
         + [("total", f"{total:.0f}", "100%")],
     )
     (out_dir / "breakdown.md").write_text(f"{title}\n\n{markdown}\n")
-    fig, ax = plt.subplots(figsize=(8, 2.6), dpi=120)
+    fig = Figure(figsize=(8, 2.6), dpi=120)
+    ax = fig.subplots()
     left = 0.0
     for row in rows:
         ax.barh([0], [row["seconds_per_million_steps"]], left=left, label=f"{row['part']} ({row['share']:.0%})")
@@ -58,5 +56,4 @@ def write_breakdown_report(
     fig.tight_layout()
     figure = out_dir / "breakdown.png"
     fig.savefig(figure, bbox_inches="tight")
-    plt.close(fig)
     return [table, out_dir / "breakdown.md", figure], markdown

@@ -259,6 +259,9 @@ def run_on_ray(jobs: Sequence[Job], cpus: float, gpus: float) -> list[str]:
 
     @ray.remote(num_cpus=cpus, num_gpus=gpus)
     def run(job_json: str) -> str:
+        import dva
+
+        dva.configure()  # a Ray worker is a fresh process
         return Job.from_json(job_json).run()
 
     futures = [run.remote(job.to_json()) for job in jobs]
@@ -360,4 +363,7 @@ def _values(text: str) -> list:
 
 
 if __name__ == "__main__":  # one run of a comparison in a child process (see launch_pinned)
+    from dva.runtime import configure
+
+    configure()
     print(Job.from_json(sys.argv[1]).run())

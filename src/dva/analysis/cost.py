@@ -14,16 +14,13 @@ import os
 from pathlib import Path
 
 import jax
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from dva.algorithms import build_agent, make_config  # noqa: E402
-from dva.algorithms.shac import SHAC, TrainState  # noqa: E402
-from dva.analysis.bench import markdown_table, timed, write_csv  # noqa: E402
+from dva.algorithms import build_agent, make_config
+from dva.algorithms.shac import SHAC, TrainState
+from dva.analysis.bench import markdown_table, timed, write_csv
 
 COMPARED = ("dva", "shac-pixels")  # the method and its baseline (paper's "SHAC + diff. rendering")
 PAPER_BACKWARD_S = {  # the paper's Table 1 (RTX 4080): (D.Va, visual SHAC)
@@ -144,7 +141,8 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
         )
         if np.isfinite([r[key] for r in rows]).any()
     ]
-    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 3.8), dpi=120, squeeze=False)
+    fig = Figure(figsize=(5 * len(panels), 3.8), dpi=120)
+    axes = fig.subplots(1, len(panels), squeeze=False)
     axes = axes[0]
     x = np.arange(len(tasks))
     width = 0.8 / len(variants)
@@ -161,7 +159,6 @@ def write_cost_report(rows: list[dict], out_dir: Path, title: str) -> tuple[list
     fig.tight_layout()
     figure = out_dir / "cost.png"
     fig.savefig(figure)
-    plt.close(fig)
     markdown = markdown_table(
         [
             "task",

@@ -9,16 +9,13 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
+from jax.flatten_util import ravel_pytree
+from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from jax.flatten_util import ravel_pytree  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from dva.algorithms import build_agent, make_config  # noqa: E402
-from dva.algorithms.shac import SHAC  # noqa: E402
-from dva.analysis.bench import write_csv  # noqa: E402
+from dva.algorithms import build_agent, make_config
+from dva.algorithms.shac import SHAC
+from dva.analysis.bench import write_csv
 
 FIELDS = ["iteration", "cosine", "apg_norm", "dpg_norm", "train_return"]
 
@@ -58,7 +55,8 @@ def write_gradient_report(rows: list[dict[str, float]], out_dir: Path, title: st
     """``apg_vs_dpg.csv`` and ``apg_vs_dpg.png`` (cosine similarity; both norms, log scale)."""
     table = write_csv(out_dir / "apg_vs_dpg.csv", [{key: row[key] for key in FIELDS} for row in rows])
     iterations = [r["iteration"] for r in rows]
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(6, 5.5), dpi=120, sharex=True)
+    fig = Figure(figsize=(6, 5.5), dpi=120)
+    top, bottom = fig.subplots(2, 1, sharex=True)
     top.plot(iterations, [r["cosine"] for r in rows], marker=".")
     top.axhline(0.0, color="grey", lw=0.8)
     top.set_ylabel("cosine(APG, DPG)")
@@ -74,5 +72,4 @@ def write_gradient_report(rows: list[dict[str, float]], out_dir: Path, title: st
     fig.tight_layout()
     figure = out_dir / "apg_vs_dpg.png"
     fig.savefig(figure)
-    plt.close(fig)
     return [table, figure]

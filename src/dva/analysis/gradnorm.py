@@ -11,16 +11,13 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from dva.analysis.bench import markdown_table, write_csv  # noqa: E402
-from dva.analysis.cost import COMPARED  # noqa: E402
-from dva.analysis.plots import read_curve  # noqa: E402
-from dva.training import TrainingDiverged, train  # noqa: E402
+from dva.analysis.bench import markdown_table, write_csv
+from dva.analysis.cost import COMPARED
+from dva.analysis.plots import read_curve
+from dva.training import TrainingDiverged, train
 
 
 def gradient_norms(
@@ -79,7 +76,8 @@ def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path, 
     table = write_csv(out_dir / "gradnorm.csv", rows)
     summary_table = write_csv(out_dir / "gradnorm_summary.csv", summary)
     tasks = list(dict.fromkeys(r["task"] for r in summary))
-    fig, axes = plt.subplots(1, len(tasks), figsize=(4 * len(tasks), 3.4), dpi=120, squeeze=False)
+    fig = Figure(figsize=(4 * len(tasks), 3.4), dpi=120)
+    axes = fig.subplots(1, len(tasks), squeeze=False)
     for ax, task in zip(axes[0], tasks):
         for algo in COMPARED:
             run = [r for r in rows if r["task"] == task and r["algo"] == algo]
@@ -96,7 +94,6 @@ def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path, 
     fig.tight_layout()
     figure = out_dir / "gradnorm.png"
     fig.savefig(figure)
-    plt.close(fig)
     markdown = markdown_table(
         ["task", "algo", "iterations", "median norm", "max norm", "diverged at"],
         [

@@ -8,11 +8,8 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")  # files only: no display needed
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
 METRICS = ("eval_return", "train_return")
 # A single evaluation swings by ±25 % on the legged tasks (a dive, a lucky episode), so the summary
@@ -171,11 +168,17 @@ def plot_runs(
 ) -> list[Path]:
     """Write ``{metric}_vs_env_steps.png`` and ``{metric}_vs_wall_time.png`` (curves grouped as in
     :func:`grouped_curves`); returns their paths."""
-    groups = grouped_curves(run_dirs, metric, labels)
+    return plot_curves(grouped_curves(run_dirs, metric, labels), out_dir, metric)
+
+
+def plot_curves(groups: dict[str, list[dict[str, np.ndarray]]], out_dir: Path, metric: str) -> list[Path]:
+    """Plot each group of curves (the seeds of a setting) as its mean ± std against env steps and
+    against wall-clock, one PNG each; returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for x_key, x_label in AXES.items():
-        fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+        fig = Figure(figsize=(6, 4), dpi=120)
+        ax = fig.subplots()
         for label, curves in groups.items():
             x, mean, std = mean_and_std(curves, x_key, metric)
             (line,) = ax.plot(x, mean, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
@@ -188,6 +191,5 @@ def plot_runs(
         fig.tight_layout()
         path = out_dir / f"{metric}_vs_{x_key}.png"
         fig.savefig(path)
-        plt.close(fig)
         written.append(path)
     return written

@@ -9,6 +9,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import mujoco
+import numpy as np
 from mujoco import mjx
 
 from dva.tasks.base import Task, load_asset_spec
@@ -51,8 +52,8 @@ class LeggedRunner(Task):
     reset_rotation = jnp.pi / 24
     reset_velocity = 0.25
     target_distance = 1e4
-    forward_axis = jnp.array([1.0, 0.0, 0.0])  # torso axis that should point along +x
-    up_axis = jnp.array([0.0, 0.0, 1.0])
+    forward_axis = np.array([1.0, 0.0, 0.0])  # torso axis along +x (NumPy: no JAX work on import)
+    up_axis = np.array([0.0, 0.0, 1.0])
 
     def initial_pose(self) -> jax.Array:
         """Joint angles of the start pose (default: the model's reference pose)."""

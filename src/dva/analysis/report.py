@@ -1,0 +1,386 @@
+"""The results report (``dva report``): every table of ``docs/results.md``, its summary and the
+README's status rows generated from the data kept in ``docs/results/``, so no number can drift
+from its data.
+
+Each section's folder holds its data (CSV files) and a ``section.toml`` that says how they were
+made and what to show::
+
+    command = "dva compare fig4 --tasks hopper --seeds 0 1 --minutes 30 --workers 2"
+    machine = "2-core x86_64 CPU, one core per run"
+    commit = "0123abc"                      # the code that made the data
+    sources = ["src/dva/tasks/legged.py"]   # the code it measures ...
+    configs = [["hopper", "dva", "cpu"]]    # ... and the configs (task, algo, preset)
+    fingerprint = "…"                       # their hash when measured (`dva report --stamp`)
+    plot = true                             # draw the runs' curves (return vs env steps and time)
+
+    [runs]                                  # setting → its runs' CSV files, one per seed
+    "D.Va" = ["hopper_dva_s0.csv", "hopper_dva_s1.csv"]
+
+    [[tables]]                              # a table of the runs: one column per statistic
+    columns = ["untrained", "first 3000", "final", "median10", "best", "env steps"]
+
+    [[tables]]                              # or a benchmark's own CSV, one row per CSV row
+    csv = "throughput.csv"
+    columns = [["task", "task"], ["forward (s)", "forward_s:.3f"]]
+
+The report marks its place for each with HTML comments, ``<!-- generated: NAME -->`` …
+``<!-- end -->`` (NAME a section folder, or ``summary``), which the generator fills. Summary rows
+(``docs/results/summary.toml``) are text with ``{{section|setting|column}}`` and
+``{{section/file.csv|key=value|field:format}}`` placeholders. When the hash of a section's sources
+and configs no longer matches its fingerprint, the section is marked stale.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import difflib
+import hashlib
+import json
+import re
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from dva.analysis.plots import LATE_POINTS
+
+RESULTS = Path("docs/results")
+DOCUMENTS = ("docs/results.md", "README.md", "docs/index.md")
+BLOCK = re.compile(r"(<!-- generated: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- end -->)", re.S)
+PLACEHOLDER = re.compile(r"\{\{(.+?)\}\}")
+STALE_MARK = "†"
+
+
+@dataclasses.dataclass
+class Run:
+    """One run's evaluations (wall-clock in seconds, env steps, return) and what else it logged."""
+
+    name: str
+    wall_time: np.ndarray
+    env_steps: np.ndarray
+    eval_return: np.ndarray
+    iterations: int
+    grad_norms: np.ndarray
+    iteration_times: np.ndarray
+
+    @classmethod
+    def load(cls, path: Path) -> Run:
+        rows = csv_rows(path)
+        evals = [r for r in rows if r.get("eval_return") not in (None, "", "nan")]
+        if not evals:
+            raise ValueError(f"{path} has no evaluations")
+
+        def logged(key: str) -> np.ndarray:
+            return np.array([float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")])
+
+        return cls(
+            path.name,
+            np.array([float(r["wall_time"]) for r in evals]),
+            np.array([float(r["env_steps"]) for r in evals]),
+            np.array([float(r["eval_return"]) for r in evals]),
+            int(float(rows[-1]["iteration"])),
+            logged("actor_grad_norm"),
+            logged("iteration_time"),
+        )
+
+    def first(self, threshold: float) -> int | None:
+        """The index of the first evaluation at or above ``threshold``."""
+        reached = np.flatnonzero(self.eval_return >= threshold)
+        return int(reached[0]) if len(reached) else None
+
+    def at(self, axis: np.ndarray, value: float) -> float | None:
+        """The first evaluation at or after ``value`` on ``axis`` (wall-clock or env steps)."""
+        index = np.flatnonzero(axis >= value)
+        return float(self.eval_return[index[0]]) if len(index) else None
+
+
+def whole(value: float) -> str:
+    """A return rounded to a whole number ("-0" shown as "0")."""
+    return "0" if round(value) == 0 else f"{value:.0f}"
+
+
+def steps(value: float) -> str:
+    """Env steps as 83k, 1.33M."""
+    return f"{value / 1e6:.2f}M" if value >= 1e6 else f"{value / 1e3:.0f}k"
+
+
+def spread(values: list[float]) -> str:
+    """One seed's value, or the mean ± std over seeds."""
+    return whole(values[0]) if len(values) == 1 else f"{whole(np.mean(values))} ± {np.std(values):.0f}"
+
+
+def per_seed(values: list[str]) -> str:
+    return " / ".join(values)
+
+
+def first_column(threshold: float) -> Callable[[list[Run]], str]:
+    def cell(runs: list[Run]) -> str:
+        times = []
+        for run in runs:
+            index = run.first(threshold)
+            times.append(
+                "never"
+                if index is None
+                else f"{run.wall_time[index] / 60:.1f} min ({steps(run.env_steps[index])} steps)"
+            )
+        return per_seed(times)
+
+    return cell
+
+
+def minutes_column(threshold: float) -> Callable[[list[Run]], str]:
+    def cell(runs: list[Run]) -> str:
+        indices = [run.first(threshold) for run in runs]
+        return per_seed(["never" if i is None else f"{run.wall_time[i] / 60:.1f}" for run, i in zip(runs, indices)])
+
+    return cell
+
+
+def at_column(minutes: float | None, env_steps: float | None) -> Callable[[list[Run]], str]:
+    def cell(runs: list[Run]) -> str:
+        values = [
+            run.at(run.wall_time, 60 * minutes) if minutes is not None else run.at(run.env_steps, env_steps)
+            for run in runs
+        ]
+        return per_seed(["–" if v is None else whole(v) for v in values])
+
+    return cell
+
+
+def max_grad_norm(runs: list[Run]) -> str:
+    """The largest logged actor gradient norm of each run: only where every iteration was logged."""
+    for run in runs:
+        if len(run.grad_norms) < run.iterations:
+            raise ValueError(
+                f"{run.name} logs actor_grad_norm for {len(run.grad_norms)} of its {run.iterations} iterations: "
+                "its largest is not the run's"
+            )
+    return per_seed([f"{run.grad_norms.max():.0f}" for run in runs])
+
+
+FIXED_COLUMNS: dict[str, tuple[str, Callable[[list[Run]], str]]] = {
+    "seeds": ("seeds", lambda runs: str(len(runs))),
+    "untrained": ("untrained", lambda runs: per_seed([whole(r.eval_return[0]) for r in runs])),
+    "final": ("final", lambda runs: spread([r.eval_return[-1] for r in runs])),
+    "median10": (
+        f"median of the last {LATE_POINTS}",
+        lambda runs: spread([np.median(r.eval_return[-LATE_POINTS:]) for r in runs]),
+    ),
+    "best": ("best", lambda runs: per_seed([whole(r.eval_return.max()) for r in runs])),
+    "env steps": ("env steps", lambda runs: per_seed([steps(r.env_steps[-1]) for r in runs])),
+    "minutes": ("minutes", lambda runs: per_seed([f"{r.wall_time[-1] / 60:.1f}" for r in runs])),
+    "iterations": ("iterations", lambda runs: per_seed([str(r.iterations) for r in runs])),
+    "s/iteration": (
+        "s / iteration",
+        lambda runs: per_seed([f"{r.wall_time[-1] / max(r.iterations, 1):.2f}" for r in runs]),
+    ),
+    "grad norm": ("largest pre-clip actor gradient norm", max_grad_norm),
+    "iteration time": (
+        "median s / iteration",
+        lambda runs: per_seed([f"{np.median(r.iteration_times):.2f}" for r in runs]),
+    ),
+}
+
+
+def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
+    """A column of a runs table from its name: one of :data:`FIXED_COLUMNS`, ``first T`` (when each
+    seed's evaluations first reached T), ``at M min`` or ``at N steps`` (the evaluation then)."""
+    if spec in FIXED_COLUMNS:
+        return FIXED_COLUMNS[spec]
+    if match := re.fullmatch(r"first (-?[\d.]+)", spec):
+        return f"first ≥ {match[1]}", first_column(float(match[1]))
+    if match := re.fullmatch(r"minutes to (-?[\d.]+)", spec):
+        return f"minutes to {match[1]}", minutes_column(float(match[1]))
+    if match := re.fullmatch(r"at ([\d.]+) min", spec):
+        return f"eval at {match[1]} min", at_column(float(match[1]), None)
+    if match := re.fullmatch(r"at ([\d.]+)k steps", spec):
+        return f"eval at {match[1]}k env steps", at_column(None, 1e3 * float(match[1]))
+    allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps"])
+    raise ValueError(f"unknown results column {spec!r}; allowed: {allowed}")
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
+
+
+def csv_rows(path: Path) -> list[dict[str, str]]:
+    if not path.is_file():
+        raise ValueError(f"the results data {path} does not exist")
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def csv_field(row: dict[str, str], spec: str) -> str:
+    """``field`` or ``field:format`` of one CSV row (numbers formatted as floats)."""
+    field, _, form = spec.partition(":")
+    if field not in row:
+        raise ValueError(f"no column {field!r} in the CSV; it has: {', '.join(row)}")
+    return format(float(row[field]), form) if form else row[field]
+
+
+@dataclasses.dataclass
+class Section:
+    """A results folder with its ``section.toml``."""
+
+    name: str
+    folder: Path
+    meta: dict
+
+    @classmethod
+    def load(cls, root: Path, name: str) -> Section:
+        folder = root / RESULTS / name
+        path = folder / "section.toml"
+        if not path.exists():
+            raise ValueError(f"no results section {name!r}: {path.relative_to(root)} does not exist")
+        return cls(name, folder, tomllib.loads(path.read_text()))
+
+    def runs(self, setting: str) -> list[Run]:
+        settings = self.meta.get("runs", {})
+        if setting not in settings:
+            raise ValueError(f"section {self.name}: no setting {setting!r}; it has: {', '.join(settings)}")
+        return [Run.load(self.folder / file) for file in settings[setting]]
+
+    def fingerprint(self, root: Path) -> str:
+        """The hash of the code and configs the section measures, as they are now."""
+        from dva.algorithms import make_config
+
+        digest = hashlib.sha256()
+        for source in sorted(self.meta.get("sources", [])):
+            digest.update(source.encode() + (root / source).read_bytes())
+        for task, algo, preset in self.meta.get("configs", []):
+            config = dataclasses.asdict(make_config(task, algo, preset))
+            digest.update(json.dumps(config, sort_keys=True, default=str).encode())
+        return digest.hexdigest()[:16]
+
+    def is_stale(self, root: Path) -> bool:
+        return self.meta.get("fingerprint") != self.fingerprint(root)
+
+    def tables(self) -> list[str]:
+        tables = []
+        for table in self.meta.get("tables", []):
+            if "csv" in table:
+                rows = csv_rows(self.folder / table["csv"])
+                header = [name for name, _ in table["columns"]]
+                tables.append(
+                    markdown_table(header, [[csv_field(r, spec) for _, spec in table["columns"]] for r in rows])
+                )
+                continue
+            columns = [run_column(spec) for spec in table["columns"]]
+            settings = table.get("settings", list(self.meta.get("runs", {})))
+            rows = [[setting] + [cell(self.runs(setting)) for _, cell in columns] for setting in settings]
+            tables.append(markdown_table([table.get("first", "setting")] + [h for h, _ in columns], rows))
+        return tables
+
+    def block(self, root: Path) -> str:
+        """The generated part of the section: how it was made, stale or not, and its tables."""
+        meta = self.meta
+        code = f"`{meta['commit']}`" if re.fullmatch(r"[0-9a-f]{7,40}", meta["commit"]) else meta["commit"]
+        lines = [
+            f"Command: `{meta['command']}`  ",
+            f"Machine: {meta['machine']}; code {code}; data in `docs/results/{self.name}/`.",
+        ]
+        if self.is_stale(root):
+            lines.append(
+                "\n**Stale**: the code or configuration this measures has changed since it was "
+                "measured; re-run the command to bring it up to date."
+            )
+        return "\n".join(lines) + "\n" + "".join("\n" + table for table in self.tables())
+
+    def plot(self) -> list[Path]:
+        from dva.analysis.plots import plot_curves
+
+        curves = {
+            setting: [
+                {"eval_return": run.eval_return, "env_steps": run.env_steps, "wall_time": run.wall_time}
+                for run in self.runs(setting)
+            ]
+            for setting in self.meta.get("runs", {})
+        }
+        return plot_curves(curves, self.folder, "eval_return")
+
+
+def placeholder(root: Path, text: str) -> str:
+    """The value of one ``{{…}}``: ``section|setting|column`` or ``section/file.csv|key=value|field:format``."""
+    parts = [part.strip() for part in text.split("|")]
+    if len(parts) != 3:
+        raise ValueError(f"placeholder {{{{{text}}}}} must have three parts separated by '|'")
+    where, pick, what = parts
+    if where.endswith(".csv"):
+        key, _, value = pick.partition("=")
+        rows = [r for r in csv_rows(root / RESULTS / where) if r.get(key) == value]
+        if len(rows) != 1:
+            raise ValueError(f"placeholder {{{{{text}}}}}: {len(rows)} rows of {where} have {key} = {value!r}")
+        section = Section.load(root, where.split("/")[0])
+        return csv_field(rows[0], what) + STALE_MARK * section.is_stale(root)
+    section = Section.load(root, where)
+    return run_column(what)[1](section.runs(pick)) + STALE_MARK * section.is_stale(root)
+
+
+def fill(root: Path, text: str) -> str:
+    return PLACEHOLDER.sub(lambda match: placeholder(root, match[1]), text)
+
+
+def summary_block(root: Path, rows: list[dict]) -> str:
+    header = list(rows[0])
+    table = markdown_table(header, [[fill(root, row[key]) for key in header] for row in rows])
+    if STALE_MARK in table:
+        table += f"\n{STALE_MARK} from a section whose code has changed since it was measured (marked stale there).\n"
+    return table
+
+
+def generate(root: Path, path: str) -> str:
+    """The document at ``path`` with every generated block filled from the data."""
+    summary = tomllib.loads((root / RESULTS / "summary.toml").read_text())
+    text = (root / path).read_text()
+
+    def body(match: re.Match) -> str:
+        name = match["name"]
+        if isinstance(summary.get(name), str):  # a paragraph
+            content = fill(root, summary[name].strip()) + "\n"
+        elif name in summary:
+            content = summary_block(root, summary[name])
+        else:
+            content = Section.load(root, name).block(root)
+        return match[1] + "\n" + content + "\n" + match[4]
+
+    return BLOCK.sub(body, text)
+
+
+def differences(root: Path) -> str:
+    """A unified diff of every document against its regenerated self ('' when all agree)."""
+    diff = []
+    for path in DOCUMENTS:
+        old, new = (root / path).read_text(), generate(root, path)
+        diff += difflib.unified_diff(old.splitlines(True), new.splitlines(True), path, f"{path} (regenerated)")
+    return "".join(diff)
+
+
+def write(root: Path, plots: bool = False) -> list[Path]:
+    """Regenerate every document (and with ``plots`` every section's curves); returns what changed."""
+    written = []
+    for path in DOCUMENTS:
+        new = generate(root, path)
+        if new != (root / path).read_text():
+            (root / path).write_text(new)
+            written.append(root / path)
+    if plots:
+        for folder in sorted((root / RESULTS).glob("*/section.toml")):
+            section = Section.load(root, folder.parent.name)
+            if section.meta.get("plot"):
+                written += section.plot()
+    return written
+
+
+def stamp(root: Path, name: str, commit: str) -> None:
+    """Record that section ``name``'s data was just measured with the code at ``commit``."""
+    section = Section.load(root, name)
+    path = section.folder / "section.toml"
+    text = path.read_text()
+    for key, value in (("commit", commit), ("fingerprint", section.fingerprint(root))):
+        text, count = re.subn(rf'(?m)^{key} = ".*"$', f'{key} = "{value}"', text)
+        if count != 1:
+            raise ValueError(f"{path.relative_to(root)} needs one line '{key} = \"…\"'")
+    path.write_text(text)
