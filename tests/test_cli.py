@@ -81,6 +81,51 @@ def test_bad_image_size_is_one_line_error(capsys):
     assert "image width 5 is not allowed" in capsys.readouterr().err
 
 
+BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run directory
+    (["train", "--minutes", "-3", "--run-dir", "RUN"], "--minutes -3.0 is not allowed; use a number > 0"),
+    (["train", "--iterations", "0", "--run-dir", "RUN"], "--iterations 0 is not allowed; use a whole number > 0"),
+    (["compare", "fig4", "--minutes", "0", "--out", "RUN"], "--minutes 0.0 is not allowed"),
+    (["train", "--iterations", "1", "--run-dir", "FILE"], "is a file, not a directory"),
+    (["train", "--iterations", "1", "--run-dir", "FILE/run"], "cannot be written (Not a directory)"),
+    (["train", "--resume", "--run-dir", "RUN"], "--resume: no run to resume in"),
+    (
+        ["train", "--task", "cartpole_swingup", "--algo", "dva", "--resume", "--run-dir", "SHAC_RUN"],
+        "holds a shac run on hopper, not dva on cartpole_swingup; pass --task hopper --algo shac",
+    ),
+    (["train", "--shac.horizon", "0", "--run-dir", "RUN"], "horizon = 0 is not allowed; use a whole number > 0"),
+    (["report", "--stamp", "fig4_hopper"], "--stamp needs --commit"),
+]
+
+
+@pytest.mark.parametrize(("arguments", "message"), BAD_INPUT, ids=[" ".join(a[:3]) for a, _ in BAD_INPUT])
+def test_bad_input_is_one_line_naming_the_value(tmp_path, capsys, arguments, message):
+    (tmp_path / "file").write_text("")
+    shac_run = tmp_path / "shac_run"
+    shac_run.mkdir()
+    (shac_run / "run.json").write_text('{"task": "hopper", "algo": "shac", "preset": "cpu", "seed": 0, "config": {}}')
+    places = {"RUN": tmp_path / "run", "FILE": tmp_path / "file", "SHAC_RUN": shac_run}
+    arguments = [
+        str(places[a.split("/")[0]]) + a[len(a.split("/")[0]) :] if a.split("/")[0] in places else a for a in arguments
+    ]
+    with pytest.raises(SystemExit) as exit_info:
+        main(arguments)
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and err.startswith("dva: error: ") and "\n" not in err, err
+    assert message in err
+
+
+def test_a_bug_keeps_its_traceback(monkeypatch):
+    """Only bad input becomes a one-line message: any other error (here a ValueError from deep
+    inside) propagates with its traceback."""
+
+    def broken(*args, **kwargs):
+        raise ValueError("an internal inconsistency")
+
+    monkeypatch.setattr(training, "train", broken)
+    with pytest.raises(ValueError, match="an internal inconsistency"):
+        main(["train", "--iterations", "1"])
+
+
 def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
     """A tiny D.Va run (pixels, decoupled) through the CLI: train (with its report: plots and a
     policy video) → plot → eval."""

@@ -15,9 +15,10 @@ import tyro
 from dva.algorithms import ALGORITHMS, AlgoName
 from dva.analysis.compare import Backend, FigureName
 from dva.configs import PresetName
+from dva.errors import DvaUsageError
 from dva.runtime import configure
 from dva.tasks import TASKS, check_physics, check_task_name
-from dva.training import TrainingDiverged
+from dva.training import TrainingDiverged, check_budget
 
 
 @dataclasses.dataclass
@@ -157,7 +158,7 @@ class TrainOptions:
             if group == ALGORITHMS[self.algo].flag_group:
                 overrides = values
             elif values:
-                raise ValueError(f"--{group}.* flags ({', '.join(values)}) do not apply to --algo {self.algo}")
+                raise DvaUsageError(f"--{group}.* flags ({', '.join(values)}) do not apply to --algo {self.algo}")
         return overrides
 
     def run(self) -> None:
@@ -165,7 +166,7 @@ class TrainOptions:
 
         if self.run_dir is None:
             if self.resume:
-                raise ValueError("--resume needs --run-dir: the run to continue")
+                raise DvaUsageError("--resume needs --run-dir: the run to continue")
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         tracker = None
         if self.track:
@@ -304,10 +305,10 @@ class ReportCommand:
         from dva.analysis import report
 
         if not (self.root / report.RESULTS).is_dir():
-            raise ValueError(f"{self.root.resolve()} has no {report.RESULTS}: run it in the repository's root")
+            raise DvaUsageError(f"{self.root.resolve()} has no {report.RESULTS}: run it in the repository's root")
         if self.stamp is not None:
             if self.commit is None:
-                raise ValueError("--stamp needs --commit: the commit of the code that made the data")
+                raise DvaUsageError("--stamp needs --commit: the commit of the code that made the data")
             report.stamp(self.root, self.stamp, self.commit)
         if self.check:
             diff = report.differences(self.root)
@@ -568,8 +569,9 @@ def main(argv: list[str] | None = None) -> None:
                 check_task_name(task)  # fail before any heavy set-up
         if getattr(command, "physics", None) is not None:
             check_physics(command.physics)
+        check_budget(getattr(command, "iterations", None), getattr(command, "minutes", None))
         command.run()
-    except ValueError as error:  # bad input: one line naming the value and the choices
+    except DvaUsageError as error:  # bad input: one line naming the value and the choices
         print(f"dva: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
     except TrainingDiverged as error:  # not a bug in dva: say what happened and what to try

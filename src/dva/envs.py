@@ -15,6 +15,7 @@ from typing import Protocol
 import jax
 import jax.numpy as jnp
 
+from dva.errors import DvaUsageError
 from dva.rendering import push_frame, reset_frame_stack
 from dva.tasks import EnvState, Task
 
@@ -48,10 +49,10 @@ class PixelObservations:
         self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3, action_repeat: int = 1
     ) -> None:
         if renderer is not None and renderer.num_envs != num_envs:
-            raise ValueError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
+            raise DvaUsageError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
         for name, value in (("frame_stack", frame_stack), ("action_repeat", action_repeat)):
             if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} {value!r} is not allowed; use an int ≥ 1")
+                raise DvaUsageError(f"{name} {value!r} is not allowed; use an int ≥ 1")
         self.task, self.num_envs, self.renderer = task, num_envs, renderer
         self.frame_stack, self.action_repeat = frame_stack, action_repeat
 

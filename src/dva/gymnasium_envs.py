@@ -36,6 +36,8 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
+from dva.errors import DvaUsageError
+
 ObsType = Literal["state", "pixels", "both"]
 OBS_TYPES: tuple[str, ...] = ("state", "pixels", "both")
 ARRAY_TYPES: tuple[str, ...] = ("numpy", "jax")
@@ -58,7 +60,9 @@ def autoreset_mode_of(value: AutoresetMode | str) -> AutoresetMode:
         if value in (mode, mode.name, mode.value):
             return mode
     allowed = ", ".join(mode.name for mode in AutoresetMode)
-    raise ValueError(f"autoreset_mode {value!r} is not allowed; use one of {allowed} (gymnasium.vector.AutoresetMode)")
+    raise DvaUsageError(
+        f"autoreset_mode {value!r} is not allowed; use one of {allowed} (gymnasium.vector.AutoresetMode)"
+    )
 
 
 def env_id(task: str) -> str:
@@ -100,11 +104,11 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         self.autoreset_mode = autoreset_mode_of(autoreset_mode)
         self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
         if obs_type not in OBS_TYPES:
-            raise ValueError(f"obs_type {obs_type!r} is not allowed; use one of {', '.join(OBS_TYPES)}")
+            raise DvaUsageError(f"obs_type {obs_type!r} is not allowed; use one of {', '.join(OBS_TYPES)}")
         if array_type not in ARRAY_TYPES:
-            raise ValueError(f"array_type {array_type!r} is not allowed; use one of {', '.join(ARRAY_TYPES)}")
+            raise DvaUsageError(f"array_type {array_type!r} is not allowed; use one of {', '.join(ARRAY_TYPES)}")
         if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode {render_mode!r} is not allowed; use None or 'rgb_array'")
+            raise DvaUsageError(f"render_mode {render_mode!r} is not allowed; use None or 'rgb_array'")
         from dva.envs import PixelObservations
         from dva.rendering import PixelRenderer
         from dva.tasks import make_task
@@ -175,11 +179,11 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         options = dict(options or {})
         mask = options.pop("reset_mask", None)
         if options:
-            raise ValueError(f"reset options {sorted(options)} are not supported; use reset_mask (or none)")
+            raise DvaUsageError(f"reset options {sorted(options)} are not supported; use reset_mask (or none)")
         if mask is not None:
             mask = np.asarray(mask)
             if mask.shape != (self.num_envs,) or mask.dtype != bool:
-                raise ValueError(
+                raise DvaUsageError(
                     f"reset_mask must be a bool array of shape ({self.num_envs},); got {mask.dtype} {mask.shape}"
                 )
             if self._state is None:
@@ -199,9 +203,9 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
             raise RuntimeError("call reset() before step()")
         actions = np.asarray(actions, np.float32) if self.array_type == "numpy" else jnp.asarray(actions, jnp.float32)
         if actions.shape != self.action_space.shape:
-            raise ValueError(f"actions have shape {actions.shape}; this env needs {self.action_space.shape}")
+            raise DvaUsageError(f"actions have shape {actions.shape}; this env needs {self.action_space.shape}")
         if self.array_type == "numpy" and not np.isfinite(actions).all():
-            raise ValueError(f"actions contain non-finite values (NaN or inf): {actions}")
+            raise DvaUsageError(f"actions contain non-finite values (NaN or inf): {actions}")
         same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
         self._state, obs, final_obs = self._step(self._state, actions, jnp.asarray(self._held), not same_step)
         state = self._state

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
+from dva.errors import DvaUsageError
 from dva.tasks import Task
 
 DEFAULT_IMAGE_SIZE = 84
@@ -27,7 +28,7 @@ def check_image_size(width: int, height: int) -> None:
     """A clear error unless both sides are ints in [MIN_IMAGE_SIZE, MAX_IMAGE_SIZE]."""
     for label, value in (("width", width), ("height", height)):
         if not isinstance(value, int) or not MIN_IMAGE_SIZE <= value <= MAX_IMAGE_SIZE:
-            raise ValueError(
+            raise DvaUsageError(
                 f"image {label} {value!r} is not allowed; use an int in [{MIN_IMAGE_SIZE}, {MAX_IMAGE_SIZE}]"
             )
 
@@ -80,7 +81,7 @@ class PixelRenderer:
         height = width if height is None else height
         check_image_size(width, height)
         if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+            raise DvaUsageError(f"num_envs must be a positive int, got {num_envs!r}")
         self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
         require_warp()
         if device is not None:  # build the model, template and render context on that device
@@ -133,7 +134,7 @@ class PixelRenderer:
         depth in metres ``(num_envs, height, width)``, clipped at ``MAX_DEPTH``.
         """
         if qpos.shape != (self.num_envs, self.task.mj_model.nq):
-            raise ValueError(
+            raise DvaUsageError(
                 f"qpos has shape {tuple(qpos.shape)}; this renderer needs ({self.num_envs}, {self.task.mj_model.nq})"
             )
         poses = scene_poses(self.task, jax.lax.stop_gradient(qpos))

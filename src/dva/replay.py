@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from dva.errors import DvaUsageError
+
 
 class Step(struct.PyTreeNode):
     """What one env step stores (leading axes: envs, or batch × sequence when sampled)."""
@@ -57,7 +59,9 @@ class SequenceReplay:
 
     def __init__(self, num_envs: int, capacity: int, batch_size: int, length: int) -> None:
         if capacity // num_envs < length:
-            raise ValueError(f"replay capacity {capacity} is too small for {num_envs} envs × {length}-step sequences")
+            raise DvaUsageError(
+                f"replay capacity {capacity} is too small for {num_envs} envs × {length}-step sequences"
+            )
         self.sequence_length = length
         self.buffer = flashbax.make_trajectory_buffer(
             add_batch_size=num_envs,

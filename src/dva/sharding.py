@@ -17,6 +17,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from dva.errors import DvaUsageError
+
 DATA_AXIS = "data"
 
 
@@ -26,12 +28,12 @@ def device_mesh(devices: int | None, num_envs: int) -> Mesh:
     available = jax.devices()
     count = len(available) if devices is None else devices
     if not isinstance(count, int) or not 1 <= count <= len(available):
-        raise ValueError(
+        raise DvaUsageError(
             f"devices = {devices!r} is not allowed; JAX sees {len(available)} {available[0].platform} device(s): "
             f"use 1 to {len(available)}"
         )
     if num_envs % count:
-        raise ValueError(f"num_envs = {num_envs} does not split over {count} devices; use a multiple of {count}")
+        raise DvaUsageError(f"num_envs = {num_envs} does not split over {count} devices; use a multiple of {count}")
     return Mesh(np.array(available[:count]), (DATA_AXIS,))
 
 

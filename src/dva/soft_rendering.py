@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from dva.errors import DvaUsageError
 from dva.rendering import MAX_DEPTH, SKY_COLOR, check_image_size, scene_poses
 from dva.tasks import Task
 
@@ -56,7 +57,9 @@ class SoftRenderer:
             {SUPPORTED.get(int(t), mujoco.mjtGeom(int(t)).name) for t in mjm.geom_type} - set(SUPPORTED.values())
         )
         if unsupported:
-            raise ValueError(f"SoftRenderer draws capsules, spheres, boxes and planes; {task.name} has {unsupported}")
+            raise DvaUsageError(
+                f"SoftRenderer draws capsules, spheres, boxes and planes; {task.name} has {unsupported}"
+            )
         self.task, self.num_envs, self.width, self.height, self.softness = task, num_envs, width, height, softness
         self._camera = mjm.camera(task.camera).id
         self._tan_half_fovy = float(np.tan(np.deg2rad(mjm.cam_fovy[self._camera]) / 2))
@@ -83,7 +86,7 @@ class SoftRenderer:
     def __call__(self, qpos: jax.Array) -> jax.Array:
         """Render ``qpos`` of shape ``(num_envs, nq)``: float RGB in [0, 255], differentiable."""
         if qpos.shape != (self.num_envs, self.task.mj_model.nq):
-            raise ValueError(
+            raise DvaUsageError(
                 f"qpos has shape {tuple(qpos.shape)}; this renderer needs ({self.num_envs}, {self.task.mj_model.nq})"
             )
         poses = scene_poses(self.task, qpos)

@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
 from dva.algorithms.base import Agent, RecurrentAgent, TeacherRun
+from dva.errors import DvaUsageError
 from dva.evaluation import evaluate_policy
 from dva.sharding import device_mesh, place
 from dva.tasks import make_task
@@ -75,7 +76,7 @@ def _agent(task: str, algo: str, config, physics: str | None, mesh: Mesh | None)
 def load_teacher(run_dir: str | None) -> TeacherRun:
     """The finished run an agent learns from (see :class:`~dva.algorithms.base.TeacherRun`)."""
     if run_dir is None:
-        raise ValueError("teacher = None: this algorithm needs a teacher run directory (--teacher)")
+        raise DvaUsageError("teacher = None: this algorithm needs a teacher run directory (--teacher)")
     spec, agent, state = load_run(run_dir)
     last = read_progress(run_dir)[-1]
     return TeacherRun(spec.algo, agent, agent.policy(state), (float(last["wall_time"]), int(last["env_steps"])))
@@ -86,7 +87,7 @@ def run_mesh(spec: RunSpec, devices: int | None) -> Mesh | None:
     every device JAX sees for an agent that splits, one for the others."""
     if not getattr(check_algo(spec.algo).make_agent, "batch_fields", ()):
         if devices not in (None, 1):
-            raise ValueError(f"devices = {devices!r} is not allowed for {spec.algo}: it runs on one device; use 1")
+            raise DvaUsageError(f"devices = {devices!r} is not allowed for {spec.algo}: it runs on one device; use 1")
         return None
     mesh = device_mesh(devices, spec.config["num_envs"])
     return mesh if mesh.size > 1 else None
@@ -132,12 +133,12 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
     run_dir = Path(run_dir)
     spec_path = run_dir / "run.json"
     if not spec_path.exists():
-        raise ValueError(f"{run_dir} is not a run directory (missing run.json)")
+        raise DvaUsageError(f"{run_dir} is not a run directory (missing run.json)")
     spec = RunSpec(**json.loads(spec_path.read_text()))
     agent = build(spec)
     manager = checkpoint_manager(run_dir)
     if manager.latest_step() is None:
-        raise ValueError(f"{run_dir} has no checkpoint yet")
+        raise DvaUsageError(f"{run_dir} has no checkpoint yet")
     return spec, agent, restore(manager, agent, spec.seed)
 
 
@@ -196,7 +197,7 @@ def restore(manager: ocp.CheckpointManager, agent: Agent, seed: int, placement=N
     try:
         saved = manager.restore(step, args=ocp.args.StandardRestore(_saved_leaves(like)))
     except Exception as error:  # orbax raises many types for damaged files
-        raise ValueError(f"checkpoint {manager.directory}/{step} is corrupt or incompatible: {error}") from None
+        raise DvaUsageError(f"checkpoint {manager.directory}/{step} is corrupt or incompatible: {error}") from None
     paths_and_leaves, treedef = jax.tree_util.tree_flatten_with_path(like)
     leaves = [
         saved.get(jax.tree_util.keystr(path), jnp.zeros(leaf.shape, leaf.dtype))  # zero-size leaves
@@ -247,6 +248,7 @@ def train(
     """
     clock = RunClock()
     run_dir = Path(run_dir)
+    check_budget(iterations, minutes)
     spec = open_run(run_dir, resume, clock, task, algo, preset, seed, physics, config_overrides)
     mesh = run_mesh(spec, devices)
     agent = build(spec, mesh)
@@ -298,16 +300,46 @@ class RunClock:
         self.start += seconds
 
 
+def check_budget(iterations: int | None, minutes: float | None) -> None:
+    """A budget must be positive (a run of no iterations or minutes would train nothing)."""
+    if iterations is not None and iterations <= 0:
+        raise DvaUsageError(f"--iterations {iterations} is not allowed; use a whole number > 0")
+    if minutes is not None and not minutes > 0:
+        raise DvaUsageError(f"--minutes {minutes} is not allowed; use a number > 0")
+
+
+def check_run_dir(run_dir: Path) -> None:
+    """The run directory must be a directory this process can create and write."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise DvaUsageError(f"--run-dir {run_dir} is a file, not a directory; use a new or existing directory")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        probe = run_dir / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as error:
+        raise DvaUsageError(
+            f"--run-dir {run_dir} cannot be written ({error.strerror}); use a writable directory"
+        ) from None
+
+
 def open_run(run_dir: Path, resume: bool, clock: RunClock, task, algo, preset, seed, physics, overrides) -> RunSpec:
-    """The run's spec: read from ``run.json`` on resume, else made (its teacher trained first, off
-    the clock) and written there."""
+    """The run's spec: read from ``run.json`` on resume (which must be a run of ``algo`` on
+    ``task``), else made (its teacher trained first, off the clock) and written there."""
     spec_path = run_dir / "run.json"
     if resume:
         if not spec_path.exists():
-            raise ValueError(f"--resume: no run to resume in {run_dir} (missing run.json)")
-        return RunSpec(**json.loads(spec_path.read_text()))
+            raise DvaUsageError(f"--resume: no run to resume in {run_dir} (missing run.json)")
+        spec = RunSpec(**json.loads(spec_path.read_text()))
+        if (spec.task, spec.algo) != (task, algo):
+            raise DvaUsageError(
+                f"--resume: {run_dir} holds a {spec.algo} run on {spec.task}, not {algo} on {task}; "
+                f"pass --task {spec.task} --algo {spec.algo}"
+            )
+        return spec
     if spec_path.exists():
-        raise ValueError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
+        raise DvaUsageError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
+    check_run_dir(run_dir)
     config = make_config(task, algo, preset, **overrides)
     began = time.perf_counter()
     config = train_teacher(algo, config, task, preset, seed, run_dir, physics)

@@ -32,6 +32,7 @@ from dva.configs import (
     tdmpc2_preset,
 )
 from dva.envs import PixelObservations, Renderer
+from dva.errors import DvaUsageError
 from dva.tasks import check_task_name, make_task
 
 RendererKind = Literal["warp", "soft"] | None
@@ -198,7 +199,7 @@ RENAMED_FIELDS: dict[type, dict[str, str]] = {
 def check_algo(algo: str) -> Algorithm:
     """The registry entry of ``algo``, or a clear error naming the choices."""
     if algo not in ALGORITHMS:
-        raise ValueError(f"unknown algo {algo!r}; choose one of: {', '.join(ALGORITHMS)}")
+        raise DvaUsageError(f"unknown algo {algo!r}; choose one of: {', '.join(ALGORITHMS)}")
     return ALGORITHMS[algo]
 
 
@@ -207,17 +208,17 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
     check_task_name(task)
     entry = check_algo(algo)
     if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
+        raise DvaUsageError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
     overrides = {key: value for key, value in overrides.items() if value is not None}
     fields = {field.name for field in dataclasses.fields(entry.config_type)}
     for key in overrides:
         if key in entry.defining:
-            raise ValueError(
+            raise DvaUsageError(
                 f"{key} = {overrides[key]!r} is not allowed for {algo}; use {entry.defining[key]!r} "
                 f"({key!r} defines the algorithm {algo!r})"
             )
         if key not in fields:
-            raise ValueError(
+            raise DvaUsageError(
                 f"unknown {algo} config field {key!r}; allowed: {', '.join(sorted(fields - set(entry.defining)))}"
             )
     return entry.config_type(**{**entry.preset(task, preset), **entry.defining, **overrides})
@@ -261,7 +262,7 @@ def build_agent(
     entry = check_algo(algo)
     if (entry.teacher_algo is None) != (teacher is None):
         needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"
-        raise ValueError(f"teacher = {teacher and teacher.algo!r}: {algo} takes {needs}")
+        raise DvaUsageError(f"teacher = {teacher and teacher.algo!r}: {algo} takes {needs}")
     task = make_task(task_name, physics)
     renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size, mesh)
     action_repeat = getattr(config, "action_repeat", 1)  # configs without one act every control step

@@ -31,6 +31,7 @@ from flax import struct
 
 from dva.algorithms.base import TeacherRun
 from dva.envs import Observation, PixelObservations
+from dva.errors import DvaUsageError
 from dva.networks import Actor
 from dva.tasks import EnvState
 
@@ -61,7 +62,7 @@ class DAggerConfig:
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.stop_loss_decay < 1.0:
-            raise ValueError(f"stop_loss_decay = {self.stop_loss_decay!r} is not allowed; use a number in [0, 1)")
+            raise DvaUsageError(f"stop_loss_decay = {self.stop_loss_decay!r} is not allowed; use a number in [0, 1)")
 
 
 class DAggerState(struct.PyTreeNode):
@@ -95,9 +96,9 @@ class DAgger:
         teacher_cost: tuple[float, int] = (0.0, 0),
     ) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:
-            raise ValueError(f"DAgger needs an env wrapper that renders {config.num_envs} envs")
+            raise DvaUsageError(f"DAgger needs an env wrapper that renders {config.num_envs} envs")
         if teacher.task.name != env.task.name:
-            raise ValueError(f"the teacher was trained on {teacher.task.name!r}, the student runs {env.task.name!r}")
+            raise DvaUsageError(f"the teacher was trained on {teacher.task.name!r}, the student runs {env.task.name!r}")
         self.env, self.task, self.config = env, env.task, config
         self.teacher, self.teacher_policy, self.prior_cost = teacher, teacher_policy, teacher_cost
         self.student = Actor(self.task.action_dim, config.actor_hidden, pixels=True, trunk=config.trunk)
@@ -218,7 +219,7 @@ class DAgger:
 def make_dagger(env: PixelObservations, config: DAggerConfig, teacher: TeacherRun) -> DAgger:
     """The student of ``teacher``, which must act on the state (SHAC or DPG on the state)."""
     if getattr(teacher.agent.config, "observation", None) != "state":
-        raise ValueError(
+        raise DvaUsageError(
             f"the teacher {config.teacher} is a {teacher.algo!r} run; DAgger needs a teacher on the state (--algo shac)"
         )
     return DAgger(env, config, teacher.agent, teacher.policy, teacher.cost)

@@ -54,6 +54,7 @@ from dva.algorithms.dreamer_math import (
 )
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.envs import Observation, PixelObservations
+from dva.errors import DvaUsageError
 from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, MLPEncoder, scale_pixels
 from dva.replay import SequenceReplay, Step
 from dva.tasks import EnvState
@@ -107,22 +108,24 @@ class DreamerV3Config:
     def __post_init__(self) -> None:
         for name in ("num_envs", "action_repeat", "batch_size", "batch_length", "horizon"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
+                raise DvaUsageError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
         if self.frame_stack != 1:
-            raise ValueError(
+            raise DvaUsageError(
                 f"frame_stack = {self.frame_stack} is not allowed for DreamerV3; use 1 (the RSSM remembers)"
             )
         if self.observation not in ("pixels", "state"):
-            raise ValueError(f"observation = {self.observation!r} is not allowed; use 'pixels' or 'state'")
+            raise DvaUsageError(f"observation = {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.observation == "pixels" and self.image_size % 16:
-            raise ValueError(
+            raise DvaUsageError(
                 f"image_size = {self.image_size} is not allowed for DreamerV3's 4 stride-2 "
                 "convolutions; use a multiple of 16 (e.g. 48, 64)"
             )
         if self.actor_gradient not in ("backprop", "reinforce"):
-            raise ValueError(f"actor_gradient = {self.actor_gradient!r} is not allowed; use 'backprop' or 'reinforce'")
+            raise DvaUsageError(
+                f"actor_gradient = {self.actor_gradient!r} is not allowed; use 'backprop' or 'reinforce'"
+            )
         if self.train_ratio <= 0:
-            raise ValueError(f"train_ratio = {self.train_ratio} is not allowed; use a number > 0")
+            raise DvaUsageError(f"train_ratio = {self.train_ratio} is not allowed; use a number > 0")
 
     @property
     def replayed_per_update(self) -> int:
@@ -207,7 +210,7 @@ class DreamerV3:
         self.pixels = config.observation == "pixels"
         if env.num_envs != config.num_envs or env.frame_stack != 1 or env.has_pixels != self.pixels:
             seen = "renders one frame each" if self.pixels else "renders nothing"
-            raise ValueError(
+            raise DvaUsageError(
                 f"DreamerV3 on {config.observation} needs an env wrapper of {config.num_envs} envs that {seen}"
             )
         self.env, self.task, self.config = env, env.task, config

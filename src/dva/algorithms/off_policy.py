@@ -20,6 +20,7 @@ from flax import struct
 
 from dva.algorithms.base import nan_loss_reason
 from dva.envs import PixelObservations
+from dva.errors import DvaUsageError
 from dva.networks import PixelEncoder
 from dva.replay import FrameReplay, NStepBatch, SequenceReplay, Step
 from dva.tasks import EnvState
@@ -48,7 +49,7 @@ class OffPolicyConfig:
     def __post_init__(self) -> None:
         for name in ("num_envs", "action_repeat", "updates_per_iteration", "batch_size", "n_step"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
+                raise DvaUsageError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
 
 
 class OffPolicyState(struct.PyTreeNode):
@@ -148,7 +149,7 @@ class OffPolicyAgent(abc.ABC):
 
     def __init__(self, env: PixelObservations, config: OffPolicyConfig) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:
-            raise ValueError(f"{type(self).__name__} needs an env wrapper that renders {config.num_envs} envs")
+            raise DvaUsageError(f"{type(self).__name__} needs an env wrapper that renders {config.num_envs} envs")
         self.env, self.task, self.config = env, env.task, config
         self.encoder = PixelEncoder()  # every algorithm's params hold its weights under "encoder"
         self.replay = FrameReplay(

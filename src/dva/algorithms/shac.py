@@ -25,6 +25,7 @@ import optax
 from flax import struct
 
 from dva.envs import Observation, PixelObservations
+from dva.errors import DvaUsageError
 from dva.networks import Actor, Critic, RunningStats
 from dva.tasks import EnvState
 
@@ -90,27 +91,33 @@ class SHACConfig:
     also the run's length when neither an iteration count nor a time budget is given."""
 
     def __post_init__(self) -> None:
+        for name in ("num_envs", "horizon", "critic_iterations", "critic_minibatches", "image_size", "frame_stack"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value <= 0:
+                raise DvaUsageError(f"{name} = {value!r} is not allowed; use a whole number > 0")
+        if not self.lr_decay_iterations > 0:
+            raise DvaUsageError(f"lr_decay_iterations = {self.lr_decay_iterations!r} is not allowed; use a number > 0")
         if self.observation not in ("pixels", "state"):
-            raise ValueError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
+            raise DvaUsageError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.gradient not in ("decoupled", "full"):
-            raise ValueError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
+            raise DvaUsageError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
         if self.actor_backward_chunk is None:  # run.json of earlier versions: the kept passes
             object.__setattr__(self, "actor_backward_chunk", 0)
         chunk = self.actor_backward_chunk
         if not isinstance(chunk, int) or chunk < 0 or (chunk and self.horizon % chunk):
-            raise ValueError(
+            raise DvaUsageError(
                 f"actor_backward_chunk = {chunk!r} is not allowed; use 0 (the kept backward passes) or a divisor of "
                 f"horizon = {self.horizon}"
             )
         if self.state_prediction < 0 or (
             self.state_prediction and (self.observation, self.gradient) != ("pixels", "decoupled")
         ):
-            raise ValueError(
+            raise DvaUsageError(
                 f"state_prediction = {self.state_prediction!r} is not allowed here; use 0, or a positive weight with "
                 "observation='pixels' and gradient='decoupled' (D.Va)"
             )
         if (self.num_envs * self.horizon) % self.critic_minibatches:
-            raise ValueError(
+            raise DvaUsageError(
                 f"num_envs × horizon = {self.num_envs * self.horizon} must divide into "
                 f"{self.critic_minibatches} critic minibatches"
             )
@@ -149,12 +156,12 @@ class SHAC:
 
     def __init__(self, env: PixelObservations, config: SHACConfig) -> None:
         if env.num_envs != config.num_envs:
-            raise ValueError(f"the env wrapper runs {env.num_envs} envs; config.num_envs is {config.num_envs}")
+            raise DvaUsageError(f"the env wrapper runs {env.num_envs} envs; config.num_envs is {config.num_envs}")
         if config.observation == "pixels":
             if not env.has_pixels:
-                raise ValueError("pixel observations need an env wrapper with a renderer")
+                raise DvaUsageError("pixel observations need an env wrapper with a renderer")
             if config.gradient == "full" and not env.differentiable_pixels:
-                raise ValueError(
+                raise DvaUsageError(
                     "gradient 'full' through pixels needs a differentiable renderer (SoftRenderer); "
                     "the Warp renderer is not — use gradient='decoupled' (D.Va)"
                 )

@@ -59,6 +59,7 @@ from dva.algorithms.dreamer_math import categorical_cross_entropy, symlog_bins, 
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations
+from dva.errors import DvaUsageError
 from dva.networks.tdmpc2 import NormedMLP, QEnsemble, TDMPC2PixelEncoder, concat_action, pixel_latent_dim
 from dva.replay import SequenceReplay, Step, stack_at
 from dva.tasks import EnvState
@@ -117,19 +118,19 @@ class TDMPC2Config:
     def __post_init__(self) -> None:
         for name in ("num_envs", "action_repeat", "updates_per_iteration", "batch_size", "horizon", "num_q"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
+                raise DvaUsageError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
         if self.observation not in ("pixels", "state"):
-            raise ValueError(f"observation = {self.observation!r} is not allowed; use 'pixels' or 'state'")
+            raise DvaUsageError(f"observation = {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.num_q < 2:
-            raise ValueError(f"num_q = {self.num_q} is not allowed; use ≥ 2 (targets take two members)")
+            raise DvaUsageError(f"num_q = {self.num_q} is not allowed; use ≥ 2 (targets take two members)")
         if not 0 < self.num_elites <= self.num_samples or not 0 <= self.num_pi_trajs < self.num_samples:
-            raise ValueError(
+            raise DvaUsageError(
                 f"num_elites = {self.num_elites}, num_pi_trajs = {self.num_pi_trajs} are not allowed with "
                 f"num_samples = {self.num_samples}; use 0 < num_elites ≤ num_samples and 0 ≤ num_pi_trajs < num_samples"
             )
         latent = pixel_latent_dim(self.image_size, self.channels) if self.observation == "pixels" else self.latent_dim
         if latent % self.simnorm_group:
-            raise ValueError(
+            raise DvaUsageError(
                 f"simnorm_group = {self.simnorm_group} does not divide the latent's {latent} entries; use a divisor"
             )
 
@@ -188,7 +189,7 @@ class TDMPC2:
         self.pixels = config.observation == "pixels"
         if env.num_envs != config.num_envs or env.has_pixels != self.pixels:
             seen = "renders" if self.pixels else "renders nothing"
-            raise ValueError(
+            raise DvaUsageError(
                 f"TD-MPC2 on {config.observation} needs an env wrapper of {config.num_envs} envs that {seen}"
             )
         self.env, self.task, self.config = env, env.task, config

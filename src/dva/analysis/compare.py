@@ -34,6 +34,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Literal
 
+from dva.errors import DvaUsageError
+
 FigureName = Literal["fig4", "fig6", "fig7", "fig13", "ablation-value", "ablation-frames"]
 FIGURES: tuple[str, ...] = typing.get_args(FigureName)
 FRAME_STACKS: tuple[int, ...] = (1, 2, 3, 4, 5, 6)  # ablation-frames' settings, as the paper's
@@ -71,13 +73,13 @@ def figure_settings(
     model-based baselines would not fit the budget).
     """
     if figure not in FIGURES:
-        raise ValueError(f"figure {figure!r} is not allowed; use one of: {', '.join(FIGURES)}")
+        raise DvaUsageError(f"figure {figure!r} is not allowed; use one of: {', '.join(FIGURES)}")
     if frames is not None and figure != "ablation-frames":
-        raise ValueError(f"frames = {list(frames)} is only allowed with ablation-frames, not with {figure!r}")
+        raise DvaUsageError(f"frames = {list(frames)} is only allowed with ablation-frames, not with {figure!r}")
     if frames is not None and (
         not frames or len(set(frames)) != len(frames) or not all(isinstance(k, int) and k >= 1 for k in frames)
     ):
-        raise ValueError(f"frames = {list(frames)} is not allowed; use distinct ints ≥ 1, e.g. 1 2 3")
+        raise DvaUsageError(f"frames = {list(frames)} is not allowed; use distinct ints ≥ 1, e.g. 1 2 3")
     if figure == "ablation-value":
         per_task = [("D.Va", "dva", ()), ("D.Va without critic", "dva", (("use_critic", False),))]
     elif figure == "ablation-frames":
@@ -96,7 +98,7 @@ def figure_settings(
     if algos is not None:
         allowed = list(dict.fromkeys(algo for _, algo, _ in per_task))
         if not algos or len(set(algos)) != len(algos) or not set(algos) <= set(allowed):
-            raise ValueError(
+            raise DvaUsageError(
                 f"algos = {list(algos)} is not allowed for {figure}; use distinct names from: {', '.join(allowed)}"
             )
         per_task = [entry for entry in per_task if entry[1] in algos]
@@ -177,7 +179,7 @@ def _tuples(value):
 def cpu_groups(cpus: Sequence[int], workers: int) -> list[tuple[int, ...]]:
     """``cpus`` split into ``workers`` disjoint groups of equal size (a remainder stays unused)."""
     if not isinstance(workers, int) or not 1 <= workers <= len(cpus):
-        raise ValueError(
+        raise DvaUsageError(
             f"workers = {workers!r} is not allowed; use an int from 1 to the {len(cpus)} CPUs this process may use"
         )
     ordered, size = sorted(cpus), len(cpus) // workers
@@ -298,7 +300,7 @@ def run_settings(
     from dva.analysis.plots import plot_runs, write_summary  # matplotlib: only when plotting
 
     if backend not in BACKENDS:
-        raise ValueError(f"backend {backend!r} is not allowed; use one of: {', '.join(BACKENDS)}")
+        raise DvaUsageError(f"backend {backend!r} is not allowed; use one of: {', '.join(BACKENDS)}")
     groups = cpu_groups(available_cpus(), workers) if backend == "local" else []
     labels: dict[Path, str] = {}
     jobs: list[Job] = []
@@ -344,7 +346,7 @@ def grid_settings(algo: str, tasks: Sequence[str], grid: Sequence[str]) -> list[
         name, _, values = entry.partition("=")
         name = name.strip().replace("-", "_")
         if not values or name not in fields:
-            raise ValueError(
+            raise DvaUsageError(
                 f"grid entry {entry!r} is not allowed; use FIELD=V1,V2 with a field of {algo}'s config "
                 f"({', '.join(sorted(fields))})"
             )

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from dva.analysis.plots import LATE_POINTS
+from dva.errors import DvaUsageError
 
 RESULTS = Path("docs/results")
 DOCUMENTS = ("docs/results.md", "README.md", "docs/index.md")
@@ -70,7 +71,7 @@ class Run:
         rows = csv_rows(path)
         evals = [r for r in rows if r.get("eval_return") not in (None, "", "nan")]
         if not evals:
-            raise ValueError(f"{path} has no evaluations")
+            raise DvaUsageError(f"{path} has no evaluations")
 
         def logged(key: str) -> np.ndarray:
             return np.array([float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")])
@@ -153,7 +154,7 @@ def max_grad_norm(runs: list[Run]) -> str:
     """The largest logged actor gradient norm of each run: only where every iteration was logged."""
     for run in runs:
         if len(run.grad_norms) < run.iterations:
-            raise ValueError(
+            raise DvaUsageError(
                 f"{run.name} logs actor_grad_norm for {len(run.grad_norms)} of its {run.iterations} iterations: "
                 "its largest is not the run's"
             )
@@ -198,7 +199,7 @@ def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
     if match := re.fullmatch(r"at ([\d.]+)k steps", spec):
         return f"eval at {match[1]}k env steps", at_column(None, 1e3 * float(match[1]))
     allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps"])
-    raise ValueError(f"unknown results column {spec!r}; allowed: {allowed}")
+    raise DvaUsageError(f"unknown results column {spec!r}; allowed: {allowed}")
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
@@ -208,7 +209,7 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
 
 def csv_rows(path: Path) -> list[dict[str, str]]:
     if not path.is_file():
-        raise ValueError(f"the results data {path} does not exist")
+        raise DvaUsageError(f"the results data {path} does not exist")
     with path.open() as f:
         return list(csv.DictReader(f))
 
@@ -217,7 +218,7 @@ def csv_field(row: dict[str, str], spec: str) -> str:
     """``field`` or ``field:format`` of one CSV row (numbers formatted as floats)."""
     field, _, form = spec.partition(":")
     if field not in row:
-        raise ValueError(f"no column {field!r} in the CSV; it has: {', '.join(row)}")
+        raise DvaUsageError(f"no column {field!r} in the CSV; it has: {', '.join(row)}")
     return format(float(row[field]), form) if form else row[field]
 
 
@@ -234,13 +235,13 @@ class Section:
         folder = root / RESULTS / name
         path = folder / "section.toml"
         if not path.exists():
-            raise ValueError(f"no results section {name!r}: {path.relative_to(root)} does not exist")
+            raise DvaUsageError(f"no results section {name!r}: {path.relative_to(root)} does not exist")
         return cls(name, folder, tomllib.loads(path.read_text()))
 
     def runs(self, setting: str) -> list[Run]:
         settings = self.meta.get("runs", {})
         if setting not in settings:
-            raise ValueError(f"section {self.name}: no setting {setting!r}; it has: {', '.join(settings)}")
+            raise DvaUsageError(f"section {self.name}: no setting {setting!r}; it has: {', '.join(settings)}")
         return [Run.load(self.folder / file) for file in settings[setting]]
 
     def fingerprint(self, root: Path) -> str:
@@ -306,13 +307,13 @@ def placeholder(root: Path, text: str) -> str:
     """The value of one ``{{…}}``: ``section|setting|column`` or ``section/file.csv|key=value|field:format``."""
     parts = [part.strip() for part in text.split("|")]
     if len(parts) != 3:
-        raise ValueError(f"placeholder {{{{{text}}}}} must have three parts separated by '|'")
+        raise DvaUsageError(f"placeholder {{{{{text}}}}} must have three parts separated by '|'")
     where, pick, what = parts
     if where.endswith(".csv"):
         key, _, value = pick.partition("=")
         rows = [r for r in csv_rows(root / RESULTS / where) if r.get(key) == value]
         if len(rows) != 1:
-            raise ValueError(f"placeholder {{{{{text}}}}}: {len(rows)} rows of {where} have {key} = {value!r}")
+            raise DvaUsageError(f"placeholder {{{{{text}}}}}: {len(rows)} rows of {where} have {key} = {value!r}")
         section = Section.load(root, where.split("/")[0])
         return csv_field(rows[0], what) + STALE_MARK * section.is_stale(root)
     section = Section.load(root, where)
@@ -382,5 +383,5 @@ def stamp(root: Path, name: str, commit: str) -> None:
     for key, value in (("commit", commit), ("fingerprint", section.fingerprint(root))):
         text, count = re.subn(rf'(?m)^{key} = ".*"$', f'{key} = "{value}"', text)
         if count != 1:
-            raise ValueError(f"{path.relative_to(root)} needs one line '{key} = \"…\"'")
+            raise DvaUsageError(f"{path.relative_to(root)} needs one line '{key} = \"…\"'")
     path.write_text(text)

@@ -7,6 +7,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from dva.errors import DvaUsageError
 from dva.networks.conv import conv_valid, scale_pixels
 
 
@@ -111,7 +112,9 @@ class StridedConv4(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         if not self.transpose and (x.shape[1] % 2 or x.shape[2] % 2):
-            raise ValueError(f"image size {x.shape[1:3]} is not allowed for a stride-2 4×4 convolution; use even sizes")
+            raise DvaUsageError(
+                f"image size {x.shape[1:3]} is not allowed for a stride-2 4×4 convolution; use even sizes"
+            )
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (4, 4, x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         return (strided_conv4_transpose if self.transpose else strided_conv4)(x, kernel) + bias

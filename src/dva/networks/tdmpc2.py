@@ -10,6 +10,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from dva.errors import DvaUsageError
 from dva.networks.conv import Conv, scale_pixels
 
 # TD-MPC2 initialises every linear layer's weights from a normal of std 0.02 truncated at ±2 std
@@ -74,7 +75,7 @@ def pixel_latent_dim(image_size: int, channels: int) -> int:
     for kernel, stride in ((7, 2), (5, 2), (3, 2), (3, 1)):
         size = (size - kernel) // stride + 1
     if size < 1:
-        raise ValueError(f"image_size = {image_size} is too small for TD-MPC2's encoder; use ≥ 39")
+        raise DvaUsageError(f"image_size = {image_size} is too small for TD-MPC2's encoder; use ≥ 39")
     return size * size * channels
 
 

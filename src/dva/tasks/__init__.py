@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 
+from dva.errors import DvaUsageError
 from dva.tasks.base import CONTROL_DT, EnvState, Task
 from dva.tasks.cartpole import CartpoleBalance, CartpoleSwingup
 from dva.tasks.legged import Ant, Humanoid, Quadruped
@@ -18,7 +19,7 @@ TASKS: dict[str, type[Task]] = {
 def check_task_name(name: str) -> None:
     """Raise a one-line ``ValueError`` naming ``name`` and the tasks there are."""
     if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
+        raise DvaUsageError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
 
 
 @functools.cache

@@ -25,6 +25,7 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
+from dva.errors import DvaUsageError
 from dva.tasks.physics import (
     PenaltyContact,
     check_physics,
@@ -159,7 +160,7 @@ class Task(abc.ABC):
     def reset(self, key: jax.Array, num_envs: int) -> EnvState:
         """Fresh episodes for ``num_envs`` environments."""
         if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+            raise DvaUsageError(f"num_envs must be a positive int, got {num_envs!r}")
         keys = jax.random.split(key, num_envs)
         env_keys, reset_keys = jax.vmap(jax.random.split, out_axes=1)(keys)
         data, obs = jax.vmap(self._reset_one)(reset_keys)
@@ -181,12 +182,12 @@ class Task(abc.ABC):
         """Advance every environment by one control step (1/60 s), auto-resetting finished ones."""
         num_envs = state.step_count.shape[0]
         if action.shape != (num_envs, self.action_dim):
-            raise ValueError(
+            raise DvaUsageError(
                 f"action has shape {tuple(action.shape)}; task {self.name!r} with {num_envs} envs "
                 f"needs ({num_envs}, {self.action_dim})"
             )
         if not isinstance(action, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(action))):
-            raise ValueError(f"action contains non-finite values (NaN or inf): {np.asarray(action)}")
+            raise DvaUsageError(f"action contains non-finite values (NaN or inf): {np.asarray(action)}")
         action = jnp.clip(action, -1.0, 1.0)
         data = jax.vmap(self.physics_step)(state.data, action)
         obs = jax.vmap(self.observation)(data, action)

@@ -28,6 +28,8 @@ from mujoco import mjx
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
+from dva.errors import DvaUsageError
+
 PHYSICS: tuple[str, ...] = ("penalty", "mujoco")
 SAFE_EPS = 1e-6  # keeps |v_t| and its gradient finite at zero sliding speed
 
@@ -35,7 +37,7 @@ SAFE_EPS = 1e-6  # keeps |v_t| and its gradient finite at zero sliding speed
 def check_physics(physics: str) -> None:
     """Raise a one-line ``ValueError`` naming ``physics`` and the models there are."""
     if physics not in PHYSICS:
-        raise ValueError(f"unknown physics {physics!r}; choose one of: {', '.join(PHYSICS)}")
+        raise DvaUsageError(f"unknown physics {physics!r}; choose one of: {', '.join(PHYSICS)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +115,7 @@ def floor_contact_points(model: mujoco.MjModel, floor: str = "floor") -> Contact
     explicit ``<pair>`` with it), in its body's frame."""
     floor_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, floor)
     if floor_id < 0:
-        raise ValueError(f"the model has no geom named {floor!r} to make contacts with")
+        raise DvaUsageError(f"the model has no geom named {floor!r} to make contacts with")
     paired = {
         int(g)
         for g1, g2 in zip(model.pair_geom1, model.pair_geom2)
@@ -139,7 +141,7 @@ def floor_contact_points(model: mujoco.MjModel, floor: str = "floor") -> Contact
             local, radius = signs * size, 0.0
         else:
             name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g)
-            raise ValueError(
+            raise DvaUsageError(
                 f"geom {name!r} of type {mujoco.mjtGeom(kind).name} cannot make penalty contacts; "
                 "use spheres, capsules or boxes"
             )
