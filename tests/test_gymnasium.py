@@ -13,7 +13,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import dva  # noqa: F401  (registers dva/<task>-v0)
-from dva.gymnasium_envs import TASK_NAMES, DvaEnv, DvaVectorEnv, env_id
+from dva.gymnasium_envs import DvaEnv, DvaVectorEnv, env_id
+from dva.task_registry import TASK_CLASSES
 from dva.tasks import TASKS
 
 NUM_ENVS = 2
@@ -47,14 +48,14 @@ def next_step_env():
 
 
 def test_every_task_is_registered_with_a_vector_entry_point():
-    assert TASK_NAMES == tuple(TASKS)
+    assert tuple(TASK_CLASSES) == tuple(TASKS)
     for task in TASKS:
         spec = gymnasium.spec(env_id(task))
         assert spec.vector_entry_point == "dva.gymnasium_envs:DvaVectorEnv"
         assert spec.kwargs == {"task": task}
 
 
-@pytest.mark.parametrize("task", TASK_NAMES)
+@pytest.mark.parametrize("task", list(TASK_CLASSES))
 def test_every_task_makes_a_vector_env_whose_space_holds_its_first_observation(task):
     env = gymnasium.make_vec(env_id(task), num_envs=NUM_ENVS)
     obs, _ = env.reset(seed=0)
@@ -235,7 +236,7 @@ def test_bad_arguments_name_the_value_and_what_is_allowed(state_env):
         DvaVectorEnv("hopper", autoreset_mode="LATER")
 
 
-@pytest.mark.parametrize("task", TASK_NAMES)
+@pytest.mark.parametrize("task", list(TASK_CLASSES))
 @pytest.mark.parametrize("obs_type", ["state", "pixels"])
 def test_gymnasiums_own_env_checker_passes(task, obs_type):
     """Gymnasium's ``check_env`` (seeding, spaces, determinism under a seed, step and reset

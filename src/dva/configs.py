@@ -137,7 +137,8 @@ DRQV2_CPU = dict(
 
 def drqv2_preset(task: str, preset: str) -> dict:
     """DrQ-v2's hyperparameters of ``task`` under ``preset``."""
-    return dict(DRQV2_PAPER[task], reward_scale=OFF_POLICY_REWARD_SCALE, **(DRQV2_CPU if preset == "cpu" else {}))
+    row = DRQV2_PAPER.get(task, DRQV2_PAPER["hopper"])  # a task without a row: the legged robots'
+    return dict(row, reward_scale=OFF_POLICY_REWARD_SCALE, **(DRQV2_CPU if preset == "cpu" else {}))
 
 
 # ---- CURL (docs/algorithms.md) ---------------------------------------------------------------------------
@@ -222,7 +223,8 @@ DAGGER_CPU = dict(num_envs=16, horizon=16, image_size=48, replay_size=20_000, up
 
 def dagger_preset(task: str, preset: str) -> dict:
     """DAgger's hyperparameters of ``task`` under ``preset``."""
-    student = {key: SHAC_PAPER[task][key] for key in ("trunk", "actor_hidden")}
+    row = SHAC_PAPER.get(task, {})  # a task without a row: SHACConfig's defaults
+    student = {key: row[key] for key in ("trunk", "actor_hidden") if key in row}
     return dict(student, **(DAGGER_CPU if preset == "cpu" else {}))
 
 
@@ -233,7 +235,7 @@ def shac_preset(task: str, preset: str, actor_input: ActorInput = "state") -> di
     """The SHAC-family hyperparameters of ``task`` under ``preset`` for an actor on ``actor_input``:
     the state (SHAC, DPG), Warp's pixels (D.Va) or differentiably rendered pixels (visual SHAC).
     Names and task are checked by the caller."""
-    values = dict(SHAC_PAPER[task])
+    values = dict(SHAC_PAPER.get(task, {}))  # a task without a row: SHACConfig's defaults (Cart-pole's)
     if actor_input == "state":
         values.update(SHAC_STATE_PAPER.get(task, {}))
     if actor_input == "differentiable-pixels":

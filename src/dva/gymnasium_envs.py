@@ -37,21 +37,11 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
 from dva.errors import DvaUsageError
+from dva.task_registry import TASK_CLASSES
 
 ObsType = Literal["state", "pixels", "both"]
 OBS_TYPES: tuple[str, ...] = ("state", "pixels", "both")
 ARRAY_TYPES: tuple[str, ...] = ("numpy", "jax")
-# The names of dva.tasks.TASKS (a test keeps them equal), so that registering on ``import dva``
-# does not import MuJoCo: the task modules load when an environment is made.
-TASK_NAMES: tuple[str, ...] = (
-    "cartpole_swingup",
-    "cartpole_balance",
-    "hopper",
-    "cheetah",
-    "ant",
-    "humanoid",
-    "quadruped",
-)
 
 
 def autoreset_mode_of(value: AutoresetMode | str) -> AutoresetMode:
@@ -72,7 +62,7 @@ def env_id(task: str) -> str:
 
 def register_envs() -> None:
     """Register ``dva/<task>-v0`` for every task (again-safe)."""
-    for task in TASK_NAMES:
+    for task in TASK_CLASSES:
         if env_id(task) not in gymnasium.registry:
             gymnasium.register(
                 id=env_id(task),

@@ -3,17 +3,22 @@
 from __future__ import annotations
 
 import functools
+import importlib
 
 from dva.errors import DvaUsageError
+from dva.task_registry import TASK_CLASSES
 from dva.tasks.base import CONTROL_DT, EnvState, Task
-from dva.tasks.cartpole import CartpoleBalance, CartpoleSwingup
-from dva.tasks.legged import Ant, Humanoid, Quadruped
 from dva.tasks.physics import PHYSICS, check_physics
-from dva.tasks.planar import Cheetah, Hopper
 
-TASKS: dict[str, type[Task]] = {
-    cls.name: cls for cls in (CartpoleSwingup, CartpoleBalance, Hopper, Cheetah, Ant, Humanoid, Quadruped)
-}
+
+def task_class(path: str) -> type[Task]:
+    """The class at ``"module:Class"``."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+# Filled from dva.task_registry (one line per task), in its order.
+TASKS: dict[str, type[Task]] = {name: task_class(path) for name, path in TASK_CLASSES.items()}
 
 
 def check_task_name(name: str) -> None:
