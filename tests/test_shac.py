@@ -49,7 +49,7 @@ def decoupled(setup):
     (loss, aux), (grad_params, grad_actions) = jax.jit(jax.value_and_grad(loss_of, argnums=(0, 1), has_aux=True))(
         train.actor_params, jnp.zeros_like(noise)
     )
-    return loss, aux[-1], grad_params, grad_actions
+    return loss, aux.taken, grad_params, grad_actions
 
 
 def flat(tree) -> np.ndarray:
@@ -88,7 +88,7 @@ def test_full_gradient_is_decoupled_plus_control_regularisation(setup, decoupled
 
     @jax.jit  # one compile: op by op the two VJPs cost ≈ 500 small ones (40 s on 2 cores)
     def control_regularisation_of(params, action_grad):
-        observations_of = lambda p: full.rollout(p, train, noise)[1][-1]["observations"]
+        observations_of = lambda p: full.rollout(p, train, noise)[1].taken["observations"]
         observations, observation_vjp = jax.vjp(observations_of, params)  # closed-loop do_t/dθ
         _, actor_vjp = jax.vjp(lambda o: full.pre_tanh_action(params, o, None), observations)  # ∂a_t/∂o_t
         return observation_vjp(actor_vjp(action_grad)[0])[0]
@@ -105,7 +105,7 @@ def test_decoupled_rollout_cuts_the_observation_path(setup):
 
     def first_action(shac, qvel_offset):
         env = train.env.replace(obs=train.env.obs + qvel_offset)
-        return shac.rollout(train.actor_params, train.replace(env=env), noise)[1][-1]["actions"][0].sum()
+        return shac.rollout(train.actor_params, train.replace(env=env), noise)[1].taken["actions"][0].sum()
 
     offset = jnp.zeros_like(train.env.obs)
     gradient = lambda name: jax.jit(jax.grad(lambda w: first_action(agent(name), w)))(
@@ -207,8 +207,8 @@ def test_without_the_critic_the_loss_is_the_windows_discounted_reward(setup, dec
     with_critic = decoupled[0]
     ablated = SHAC(shac.env, dataclasses.replace(shac.config, use_critic=False))
     loss, aux = jax.jit(ablated.rollout)(train.actor_params, train, noise)
-    reward = np.asarray(aux[2].reward)
-    assert not np.asarray(aux[2].boundary)[:-1].any()
+    reward = np.asarray(aux.trajectory.reward)
+    assert not np.asarray(aux.trajectory.boundary)[:-1].any()
     discounts = shac.config.gamma ** np.arange(HORIZON)[:, None]
     assert float(loss) == pytest.approx(-(discounts * reward).sum() / (NUM_ENVS * HORIZON), rel=1e-5)
     assert float(with_critic) != pytest.approx(float(loss), rel=1e-5)  # the critic's bootstrap is there
@@ -267,9 +267,11 @@ def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
 
         def second_action(qpos_offset):
             data = train.env.data.replace(qpos=train.env.data.qpos + qpos_offset)
-            return shac.rollout(train.actor_params, train.replace(env=train.env.replace(data=data)), noise)[1][-1][
-                "actions"
-            ][1].sum()
+            return (
+                shac.rollout(train.actor_params, train.replace(env=train.env.replace(data=data)), noise)[1]
+                .taken["actions"][1]
+                .sum()
+            )
 
         return np.asarray(jax.jit(jax.grad(second_action))(jnp.zeros_like(train.env.data.qpos)))
 
@@ -303,7 +305,7 @@ def test_state_prediction_adds_its_weighted_mean_squared_error_to_the_actor_grad
     shac = SHAC(env, config)
     train = jax.jit(shac.init)(jax.random.PRNGKey(0))
     noise = jax.random.normal(jax.random.PRNGKey(1), (2, NUM_ENVS, 1))
-    taken = jax.jit(shac.rollout)(train.actor_params, train, noise)[1][-1]
+    taken = jax.jit(shac.rollout)(train.actor_params, train, noise)[1].taken
 
     def mean_squared_error(params):
         flat_obs = taken["observations"].reshape((-1,) + taken["observations"].shape[2:])
@@ -320,6 +322,6 @@ def test_state_prediction_adds_its_weighted_mean_squared_error_to_the_actor_grad
         chunked = SHAC(env, dataclasses.replace(config, actor_backward_chunk=chunk))
         _, aux, grads = jax.jit(chunked.actor_gradient)(train.actor_params, train, noise)
         np.testing.assert_allclose(flat(grads), flat(expected), rtol=1e-4, atol=1e-6 * np.abs(flat(expected)).max())
-        assert float(aux[4]["state_prediction_loss"]) == pytest.approx(error, rel=1e-5)
+        assert float(aux.stats["state_prediction_loss"]) == pytest.approx(error, rel=1e-5)
     with pytest.raises(ValueError, match="state_prediction = 0.5 is not allowed"):
         SHACConfig(observation="state", state_prediction=0.5)

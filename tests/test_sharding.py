@@ -12,6 +12,7 @@ import textwrap
 
 import pytest
 
+from dva.algorithms import make_config
 from dva.sharding import device_mesh
 from dva.training import RunSpec, run_mesh
 
@@ -115,8 +116,9 @@ def test_dva_on_two_devices_has_the_one_device_gradient(tmp_path):
 def test_device_counts_that_cannot_work_are_refused():
     with pytest.raises(ValueError, match=r"devices = 2 is not allowed; JAX sees 1 cpu device\(s\): use 1 to 1"):
         device_mesh(2, 16)
-    spec = RunSpec("cartpole_swingup", "drqv2", "cpu", 0, {"num_envs": 16}, "penalty")
+    spec = RunSpec("cartpole_swingup", "drqv2", "cpu", 0, make_config("cartpole_swingup", "drqv2", "cpu"), "penalty")
     with pytest.raises(ValueError, match="devices = 2 is not allowed for drqv2: it runs on one device; use 1"):
         run_mesh(spec, 2)
     assert run_mesh(spec, None) is None
-    assert run_mesh(RunSpec("cartpole_swingup", "shac", "cpu", 0, {"num_envs": 16}, "penalty"), None) is None
+    shac = make_config("cartpole_swingup", "shac", "cpu")
+    assert run_mesh(RunSpec("cartpole_swingup", "shac", "cpu", 0, shac, "penalty"), None) is None

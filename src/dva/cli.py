@@ -258,7 +258,7 @@ class EvalCommand:
                 camera,
                 self.video_envs,
                 self.video_size,
-                action_repeat=spec.config.get("action_repeat", 1),
+                action_repeat=getattr(spec.config, "action_repeat", 1),
             )
             print(f"wrote {self.video}")
 

@@ -12,7 +12,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,8 +47,18 @@ class RunSpec:
     algo: str
     preset: str
     seed: int
-    config: dict
+    config: Any  # the algorithm's typed config (a dict only in run.json)
     physics: str | None = None  # the task's contact model (None: the task's default)
+
+    @classmethod
+    def read(cls, path: Path) -> RunSpec:
+        """The spec saved in ``path`` (``run.json``), its config typed again."""
+        values = json.loads(path.read_text())
+        return cls(**dict(values, config=config_from_dict(values["algo"], values["config"])))
+
+    def to_dict(self) -> dict:
+        """As ``run.json`` holds it."""
+        return dict(self.__dict__, config=dataclasses.asdict(self.config))
 
 
 def read_progress(run_dir) -> list[dict]:
@@ -60,7 +70,7 @@ def read_progress(run_dir) -> list[dict]:
 def build(spec: RunSpec, mesh: Mesh | None = None) -> Agent:
     """The agent of a run (its renderer, which must stay alive, lives in ``agent.env``); one per
     task, algorithm, config, physics and device mesh in a process (see :func:`_agent`)."""
-    return _agent(spec.task, spec.algo, config_from_dict(spec.algo, spec.config), spec.physics, mesh)
+    return _agent(spec.task, spec.algo, spec.config, spec.physics, mesh)
 
 
 @functools.lru_cache(maxsize=4)
@@ -89,7 +99,7 @@ def run_mesh(spec: RunSpec, devices: int | None) -> Mesh | None:
         if devices not in (None, 1):
             raise DvaUsageError(f"devices = {devices!r} is not allowed for {spec.algo}: it runs on one device; use 1")
         return None
-    mesh = device_mesh(devices, spec.config["num_envs"])
+    mesh = device_mesh(devices, spec.config.num_envs)
     return mesh if mesh.size > 1 else None
 
 
@@ -134,7 +144,7 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
     spec_path = run_dir / "run.json"
     if not spec_path.exists():
         raise DvaUsageError(f"{run_dir} is not a run directory (missing run.json)")
-    spec = RunSpec(**json.loads(spec_path.read_text()))
+    spec = RunSpec.read(spec_path)
     agent = build(spec)
     manager = checkpoint_manager(run_dir)
     if manager.latest_step() is None:
@@ -213,7 +223,7 @@ def csv_fields(agent: Agent) -> list[str]:
 
 def train(
     task: str,
-    algo: str = "dva",
+    algo: str | None = None,
     *,
     preset: str = "cpu",
     seed: int = 0,
@@ -232,7 +242,8 @@ def train(
 ) -> Path:
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
 
-    ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
+    ``algo`` defaults to ``"dva"`` for a new run and to the run's own on ``resume`` (given, it
+    must be the run's). ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
     ``iterations``, or ``minutes`` (the whole call, set-up and compilation included, and what the
     agent builds on — DAgger's teacher —, evaluations excluded; so does the logged wall-clock, a
     fair clock for comparing methods whatever their tasks' evaluations cost; on ``resume``,
@@ -249,12 +260,21 @@ def train(
     clock = RunClock()
     run_dir = Path(run_dir)
     check_budget(iterations, minutes)
-    spec = open_run(run_dir, resume, clock, task, algo, preset, seed, physics, config_overrides)
+    if resume:
+        spec = resumed_run(run_dir, task, algo)
+    else:
+        algo = algo or "dva"
+        check_new_run_dir(run_dir)
+        config = make_config(task, algo, preset, **config_overrides)
+        began = time.perf_counter()
+        config = train_teacher(algo, config, task, preset, seed, run_dir, physics)  # DAgger's, if it has none
+        clock.exclude(time.perf_counter() - began)  # the teacher's time counts through agent.prior_cost
+        spec = write_spec(run_dir, RunSpec(task, algo, preset, seed, config, make_task(task, physics).physics))
     mesh = run_mesh(spec, devices)
     agent = build(spec, mesh)
     checkpoints = Checkpoints(checkpoint_manager(run_dir), checkpoint_every, checkpoint_minutes)
     if tracker is not None:
-        tracker.start(run_dir, spec.__dict__)
+        tracker.start(run_dir, spec.to_dict())
     log = ProgressLog(run_dir, csv_fields(agent), tracker)
     state = starting_state(agent, spec, mesh, checkpoints.manager, log, resume)
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
@@ -323,31 +343,31 @@ def check_run_dir(run_dir: Path) -> None:
         ) from None
 
 
-def open_run(run_dir: Path, resume: bool, clock: RunClock, task, algo, preset, seed, physics, overrides) -> RunSpec:
-    """The run's spec: read from ``run.json`` on resume (which must be a run of ``algo`` on
-    ``task``), else made (its teacher trained first, off the clock) and written there."""
+def resumed_run(run_dir: Path, task: str, algo: str | None) -> RunSpec:
+    """The spec of the run in ``run_dir`` (``run.json``), which must be a run on ``task`` (and of
+    ``algo`` where given)."""
     spec_path = run_dir / "run.json"
-    if resume:
-        if not spec_path.exists():
-            raise DvaUsageError(f"--resume: no run to resume in {run_dir} (missing run.json)")
-        spec = RunSpec(**json.loads(spec_path.read_text()))
-        if (spec.task, spec.algo) != (task, algo):
-            raise DvaUsageError(
-                f"--resume: {run_dir} holds a {spec.algo} run on {spec.task}, not {algo} on {task}; "
-                f"pass --task {spec.task} --algo {spec.algo}"
-            )
-        return spec
-    if spec_path.exists():
+    if not spec_path.exists():
+        raise DvaUsageError(f"--resume: no run to resume in {run_dir} (missing run.json)")
+    spec = RunSpec.read(spec_path)
+    if spec.task != task or algo not in (None, spec.algo):
+        raise DvaUsageError(
+            f"--resume: {run_dir} holds a {spec.algo} run on {spec.task}, not {algo or spec.algo} on {task}; "
+            f"pass --task {spec.task} --algo {spec.algo}"
+        )
+    return spec
+
+
+def check_new_run_dir(run_dir: Path) -> None:
+    """A new run needs a directory that holds no run and can be written."""
+    if (run_dir / "run.json").exists():
         raise DvaUsageError(f"run directory {run_dir} already holds a run; pass --resume or another --run-dir")
     check_run_dir(run_dir)
-    config = make_config(task, algo, preset, **overrides)
-    began = time.perf_counter()
-    config = train_teacher(algo, config, task, preset, seed, run_dir, physics)
-    # The teacher's time is on the clock through agent.prior_cost: not twice.
-    clock.exclude(time.perf_counter() - began)
-    spec = RunSpec(task, algo, preset, seed, dataclasses.asdict(config), make_task(task, physics).physics)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    spec_path.write_text(json.dumps(spec.__dict__, indent=2))
+
+
+def write_spec(run_dir: Path, spec: RunSpec) -> RunSpec:
+    """Save a new run's spec as ``run.json`` (what ``--resume`` rebuilds it from)."""
+    (run_dir / "run.json").write_text(json.dumps(spec.to_dict(), indent=2))
     return spec
 
 

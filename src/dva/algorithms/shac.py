@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Literal
+from typing import Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -145,6 +145,17 @@ class Trajectory(struct.PyTreeNode):
     reward: jax.Array
     next_value: jax.Array  # V'(state reached), 0 where the episode terminated
     boundary: jax.Array  # the episode or the horizon ends after this step (no λ-mixing past it)
+
+
+class Rollout(NamedTuple):
+    """The by-products of :meth:`SHAC.rollout` beside its loss."""
+
+    env: EnvState  # the environments after the window
+    episode_return: jax.Array  # (N,) running return of each env's current episode
+    trajectory: Trajectory  # what the critic learns from
+    visited_obs: jax.Array  # (h, N, obs_dim) raw states, for the observation statistics
+    stats: dict[str, Any]  # the window's logged numbers (finished episodes' returns, …)
+    taken: dict[str, Any]  # per step: the actor's inputs, pre-tanh actions, backward passes, states
 
 
 class SHAC:
@@ -328,10 +339,10 @@ class SHAC:
         }
         # The actor's inputs, pre-tanh actions and (decoupled) backward passes, per step.
         taken = {"observations": observations, "actions": actions, "actor_vjp": vjps, "states": critic_obs}
-        return loss, (env, episode_return, trajectory, visited_obs, stats, taken)
+        return loss, Rollout(env, episode_return, trajectory, visited_obs, stats, taken)
 
     def actor_gradient(self, actor_params: dict, train: TrainState, noise: jax.Array):
-        """``(loss, aux, ∇θ loss)`` of :meth:`rollout`.
+        """``(loss, rollout, ∇θ loss)`` of :meth:`rollout` (``rollout`` its :class:`Rollout`).
 
         Decoupled: by Theorem 1 the gradient is ``Σ_t (∂a_t/∂θ)ᵀ ∇_{a_t} L`` with the open-loop
         action gradient ``∇_{a_t} L``. So the scan differentiates only the physics (with respect
@@ -339,7 +350,7 @@ class SHAC:
         afterwards (:meth:`actor_backward`) instead of inside the reverse scan through the physics.
         Full: plain reverse mode through everything. The auxiliary state-prediction loss (decoupled
         only) joins the actor's gradient in :meth:`actor_backward`; its mean squared error is
-        ``aux[4]["state_prediction_loss"]``.
+        ``rollout.stats["state_prediction_loss"]``.
         """
         cfg = self.config
         if cfg.gradient == "full":
@@ -349,9 +360,9 @@ class SHAC:
         (loss, aux), action_grad = jax.value_and_grad(
             lambda w: self.rollout(actor_params, train, noise, w), has_aux=True
         )(offsets)
-        grads, squared_error = self.actor_backward(actor_params, aux[-1], noise, action_grad)
+        grads, squared_error = self.actor_backward(actor_params, aux.taken, noise, action_grad)
         if cfg.state_prediction:
-            aux[4]["state_prediction_loss"] = squared_error / aux[-1]["states"].size
+            aux.stats["state_prediction_loss"] = squared_error / aux.taken["states"].size
         return loss, aux, grads
 
     def actor_backward(self, actor_params: dict, taken: dict, noise: jax.Array, action_grad: jax.Array):
@@ -429,8 +440,8 @@ class SHAC:
         cfg = self.config
         key, noise_key, critic_key = jax.random.split(train.key, 3)
         noise = jax.random.normal(noise_key, (cfg.horizon, cfg.num_envs, self.task.action_dim))
-        loss, aux, grads = self.actor_gradient(train.actor_params, train, noise)
-        env, episode_return, trajectory, visited_obs, stats, _ = aux
+        loss, rollout, grads = self.actor_gradient(train.actor_params, train, noise)
+        env, episode_return, trajectory, visited_obs, stats, _ = rollout
         grad_norm = optax.tree.norm(grads)
         healthy = jnp.isfinite(grad_norm) & (grad_norm <= cfg.abort_grad_norm)
         updates, actor_opt_state = self.actor_opt.update(grads, train.actor_opt_state, train.actor_params)

@@ -36,7 +36,7 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
 
     def forward(p, s, n):  # the loss, plus what the actor and critic timings below take as input
         loss, aux = agent.rollout(p, s, n)
-        return loss, aux[-1]["observations"], aux[2]
+        return loss, aux.taken["observations"], aux.trajectory
 
     _, times["rollout_forward"], (_, observations, trajectory) = timed(jax.jit(forward), params, state, noise)
     actor_forward = jax.jit(lambda p, obs: jax.lax.map(lambda o: agent.actor.apply(p, o)[0].sum(), obs))
@@ -52,7 +52,7 @@ def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:
         )
         _, physics_time, ((_, aux), grad) = timed(action_grad, params, state, noise, offsets)
         times["rollout_backward"] = physics_time - times["rollout_forward"]
-        times["actor_backward"] = timed(jax.jit(agent.actor_backward), params, aux[-1], noise, grad)[1]
+        times["actor_backward"] = timed(jax.jit(agent.actor_backward), params, aux.taken, noise, grad)[1]
     critic = jax.jit(agent.critic_update)
     times["critic"] = timed(critic, state, trajectory, jax.random.PRNGKey(2))[1]
     if agent.env.renderer is not None:
