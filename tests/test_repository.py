@@ -3,13 +3,16 @@ command line and the configs, and no development history in tracked files."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import os
 import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from unittest import mock
 
 import pytest
 
@@ -55,24 +58,102 @@ def test_no_development_history_in_tracked_files():
     assert result.stdout == "", result.stdout
 
 
-def test_cli_page_lists_every_option():
+FLAG = r"--[a-z][a-z0-9-]*(?:\.[a-z0-9-]+|\.\*)?"
+
+
+def cli_commands() -> list[list[str]]:
     from dva import cli
 
+    return [[name] for name in cli.COMMANDS if name != "analyze"] + [["analyze", name] for name in cli.ANALYSES]
+
+
+def help_flags(command: list[str]) -> set[str]:
+    """The options ``dva COMMAND --help`` lists (each at the start of its entry, not those its
+    descriptions mention)."""
+    from dva import cli
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit), mock.patch.dict(os.environ, {"COLUMNS": "80"}):
+        cli.main([*command, "--help"])
+    # One column at 80 characters: an entry's line (its flags and their types) starts two spaces
+    # in, its description six further.
+    entries = re.findall(r"^[│ ] (--.*)$", out.getvalue(), re.M)
+    assert out.getvalue().startswith("usage: dva"), command
+    return {flag for entry in entries for flag in re.findall(FLAG, entry)} - {"--help"}
+
+
+def page_sections(page: str) -> dict[str, str]:
+    """The text docs/cli.md gives each command: its ``## `dva NAME`` section, or for an analysis its
+    table row."""
+    sections = {}
+    for block in re.split(r"\n## ", page)[1:]:
+        name = re.match(r"`dva ([a-z]+)", block)
+        if name and name[1] != "analyze":
+            sections[name[1]] = block
+    for row in re.findall(r"^\| `dva analyze ([a-z]+)` \|(.*)$", page, re.M):
+        sections[f"analyze {row[0]}"] = row[1]
+    return sections
+
+
+def docs_against_help(sections: dict[str, str], helps: dict[str, set[str]]) -> list[str]:
+    """Both directions: each option a command's help lists that its docs lack ("undocumented"),
+    and each option its docs give that its help lacks ("phantom"); `--shac.*` stands for its group."""
+    problems = []
+    for command, flags in helps.items():
+        text = sections.get(command)
+        if text is None:
+            problems.append(f"dva {command}: no section")
+            continue
+        documented = set(re.findall(FLAG, text))
+        groups = {flag.split(".")[0] + ".*" for flag in flags if "." in flag}
+        for flag in sorted(flags):
+            if flag not in documented and flag.split(".")[0] + ".*" not in documented:
+                problems.append(f"dva {command} {flag}: undocumented")
+        for flag in sorted(documented - flags - groups):
+            problems.append(f"dva {command} {flag}: phantom (not in its --help)")
+    return problems
+
+
+def test_cli_page_and_help_agree_both_ways():
     page = (ROOT / "docs" / "cli.md").read_text()
-    commands = [["train"], ["eval"], ["plot"], ["compare"], ["sweep"], *[["analyze", name] for name in cli.ANALYSES]]
-    missing = []
-    for command in commands:
-        help_text = subprocess.run(
-            [sys.executable, "-m", "dva.cli", *command, "--help"],
-            capture_output=True,
-            text=True,
-            env={**os.environ, "COLUMNS": "200"},
-        ).stdout
-        for flag in set(re.findall(r"--[a-z][a-z0-9-]*(?:\.[a-z0-9-]+)?", help_text)) - {"--help"}:
-            group = flag.split(".")[0] + ".*"  # --shac.horizon is documented as the --shac.* group
-            if f"`{flag}`" not in page and f"`{group}`" not in page and f"{flag} " not in page:
-                missing.append(f"{' '.join(command)} {flag}")
-    assert not missing, f"docs/cli.md lacks: {', '.join(sorted(missing))}"
+    helps = {" ".join(command): help_flags(command) for command in cli_commands()}
+    problems = docs_against_help(page_sections(page), helps)
+    assert not problems, "docs/cli.md and the parsers disagree: " + "; ".join(problems)
+
+
+def test_the_docs_check_catches_a_phantom_and_a_missing_option():
+    sections = {"train": "| `--task` | … |\n| `--shac.*` | … |\n| `--colour` | a phantom |"}
+    helps = {"train": {"--task", "--shac.horizon", "--seed"}}
+    assert docs_against_help(sections, helps) == [
+        "dva train --seed: undocumented",
+        "dva train --colour: phantom (not in its --help)",
+    ]
+
+
+def test_algorithm_and_task_lists_match_the_registries():
+    from dva.algorithms import ALGORITHMS
+    from dva.tasks import TASKS
+
+    readme, cli_page = (ROOT / "README.md").read_text(), (ROOT / "docs" / "cli.md").read_text()
+    listed = {
+        "README": re.search(r"Algorithms \(`--algo`\):(.*?)\. Presets", readme, re.S)[1],
+        "docs/cli.md": re.search(r"^\| `--algo` \|(.*)$", cli_page, re.M)[1],
+    }
+    for where, text in listed.items():
+        assert set(re.findall(r"`([a-z0-9-]+)`", text)) == set(ALGORITHMS), where
+    tasks_page = (ROOT / "docs" / "tasks.md").read_text()
+    rows = set(re.findall(r"^\| `([a-z_]+)` \|", tasks_page, re.M))
+    assert rows == set(TASKS), f"docs/tasks.md's table lists {sorted(rows)}"
+
+
+def test_docs_state_the_python_and_package_versions():
+    from importlib.metadata import version
+
+    requires = re.search(r'requires-python = ">=([\d.]+)"', (ROOT / "pyproject.toml").read_text())[1]
+    index, results = (ROOT / "docs" / "index.md").read_text(), (ROOT / "docs" / "results.md").read_text()
+    assert f"Python ≥ {requires}" in index
+    for package, name in (("mujoco", "MuJoCo"), ("mujoco-mjx", "MJX"), ("jax", "JAX"), ("warp-lang", "warp-lang")):
+        assert f"{name} {version(package)}" in results, package
 
 
 def test_algorithms_page_lists_every_hyperparameter():

@@ -266,7 +266,7 @@ def test_dagger_counts_its_teachers_time_and_env_steps(tmp_path, monkeypatch):
         "cartpole_swingup",
         "dagger",
         preset="cpu",
-        iterations=0,
+        iterations=1,
         run_dir=tmp_path / "in_call",
         eval_every=None,
         num_envs=4,

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
+from dva.errors import DvaUsageError
+
 METRICS = ("eval_return", "train_return")
 # A single evaluation swings by ±25 % on the legged tasks (a dive, a lucky episode), so the summary
 # also gives each run's median over its last evaluations: 10 minutes in ``dva compare`` (once a minute).
@@ -22,7 +24,7 @@ def read_curve(run_dir: Path, metric: str) -> dict[str, np.ndarray]:
     """The logged ``metric`` of a run with its env steps and wall-clock, rows where it is finite."""
     path = Path(run_dir) / "progress.csv"
     if not path.exists():
-        raise ValueError(f"{run_dir} has no progress.csv (is it a run directory?)")
+        raise DvaUsageError(f"{run_dir} has no progress.csv (is it a run directory?)")
     with path.open() as f:
         rows = [r for r in csv.DictReader(f) if r[metric] not in ("", "nan")]
     return {key: np.array([float(r[key]) for r in rows]) for key in (metric, *AXES)}
@@ -53,12 +55,12 @@ def grouped_curves(
     """The runs' curves of ``metric`` grouped by label (the seeds of one setting): ``labels[run_dir]``
     where given, else :func:`run_label`."""
     if metric not in METRICS:
-        raise ValueError(f"metric {metric!r} is not allowed; use one of: {', '.join(METRICS)}")
+        raise DvaUsageError(f"metric {metric!r} is not allowed; use one of: {', '.join(METRICS)}")
     groups: dict[str, list[dict[str, np.ndarray]]] = defaultdict(list)
     for run_dir in run_dirs:
         curve = read_curve(run_dir, metric)
         if len(curve[metric]) == 0:
-            raise ValueError(f"{run_dir} has no {metric} logged yet")
+            raise DvaUsageError(f"{run_dir} has no {metric} logged yet")
         groups[labels[run_dir] if labels and run_dir in labels else run_label(run_dir)].append(curve)
     return groups
 

@@ -1,0 +1,100 @@
+"""The generated results report: its statistics against hand-computed values, stale sections, and
+the committed documents equal to what their data generate."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from dva.analysis import report
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CURVE = """iteration,env_steps,wall_time,eval_return,actor_grad_norm
+0,0,0.0,100,
+1,256,30.0,,5.0
+2,512,60.0,700,9.0
+3,768,120.0,,2.0
+4,1024,180.0,500,3.0
+"""
+
+
+def make_root(tmp_path: Path, fingerprint: str = "") -> Path:
+    """A repository with one source file, one section of two seeds and a document."""
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "task.py").write_text("reward = 1\n")
+    folder = tmp_path / report.RESULTS / "toy"
+    folder.mkdir(parents=True)
+    (folder / "s0.csv").write_text(CURVE)
+    (folder / "s1.csv").write_text(CURVE.replace("700", "900").replace(",500,", ",300,"))
+    (folder / "section.toml").write_text(
+        'command = "dva train --task toy"\nmachine = "a CPU"\ncommit = "0123abc"\n'
+        f'sources = ["src/task.py"]\nconfigs = []\nfingerprint = "{fingerprint}"\n\n'
+        '[runs]\n"D.Va" = ["s0.csv", "s1.csv"]\n\n'
+        '[[tables]]\ncolumns = ["untrained", "first 600", "final", "median10", "best", "env steps", "grad norm"]\n'
+    )
+    (tmp_path / report.RESULTS / "summary.toml").write_text(
+        '[[status]]\ntask = "toy"\n"D.Va" = "final {{toy|D.Va|final}}, 2× at {{toy|D.Va|minutes to 600}} min"\n'
+    )
+    for document in report.DOCUMENTS:
+        path = tmp_path / document
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(
+            "# Doc\n\n<!-- generated: status -->\n<!-- end -->\n\n<!-- generated: toy -->\nold\n<!-- end -->\n"
+        )
+    return tmp_path
+
+
+def test_run_statistics_are_the_hand_computed_ones(tmp_path):
+    root = make_root(tmp_path)
+    text = report.generate(root, "docs/results.md")
+    # Seed 0 evaluates 100, 700, 500; seed 1 100, 900, 300. Final: mean 400, std 100; median of
+    # the (three) last: 500 and 300; both first pass 600 at the 60-second evaluation (512 steps).
+    assert "| D.Va | 100 / 100 | 1.0 min (1k steps) / 1.0 min (1k steps) | 400 ± 100 | 400 ± 100 | 700 / 900 |" in text
+    assert "| 1k / 1k | 9 / 9 |" in text
+    assert "| toy | final 400 ± 100†, 2× at 1.0 / 1.0† min |" in text  # a stale section's values are marked
+    assert "old" not in text
+
+
+def test_a_section_is_stale_exactly_when_its_sources_changed(tmp_path):
+    root = make_root(tmp_path)
+    assert "**Stale**" in report.generate(root, "docs/results.md")
+    report.stamp(root, "toy", "4567def")
+    fresh = report.generate(root, "docs/results.md")
+    assert "**Stale**" not in fresh and "†" not in fresh and "code `4567def`" in fresh
+    (root / "src" / "task.py").write_text("reward = 2\n")
+    assert "**Stale**" in report.generate(root, "docs/results.md")
+
+
+def test_write_then_check_agree(tmp_path):
+    root = make_root(tmp_path)
+    assert report.differences(root) != ""
+    report.write(root)
+    assert report.differences(root) == ""
+
+
+def test_bad_columns_and_thinned_logs_are_refused(tmp_path):
+    root = make_root(tmp_path)
+    with pytest.raises(ValueError, match="unknown results column 'fastest'"):
+        report.run_column("fastest")
+    folder = root / report.RESULTS / "toy"
+    (folder / "s0.csv").write_text(CURVE.replace("1,256,30.0,,5.0\n", ""))
+    with pytest.raises(ValueError, match="logs actor_grad_norm for 3 of its 4 iterations"):
+        report.generate(root, "docs/results.md")
+    with pytest.raises(ValueError, match="no setting 'DrQ-v2'"):
+        report.placeholder(root, "toy|DrQ-v2|final")
+
+
+def test_the_documents_equal_what_their_data_generate():
+    """Run `dva report` after changing data, a section.toml, or the code a section measures."""
+    diff = report.differences(ROOT)
+    assert diff == "", "the results documents differ from their data; run `dva report`:\n" + diff
+
+
+def test_every_data_folder_is_a_section_the_documents_show():
+    folders = {path.name for path in (ROOT / report.RESULTS).iterdir() if path.is_dir()}
+    sections = {path.parent.name for path in (ROOT / report.RESULTS).glob("*/section.toml")}
+    assert folders == sections
+    shown = "".join((ROOT / document).read_text() for document in report.DOCUMENTS)
+    assert not [name for name in sections if f"<!-- generated: {name} -->" not in shown]
