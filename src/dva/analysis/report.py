@@ -23,8 +23,8 @@ made and what to show::
     csv = "throughput.csv"
     columns = [["task", "task"], ["forward (s)", "forward_s:.3f"]]
 
-The report marks its place for each with HTML comments, ``<!-- generated: NAME -->`` …
-``<!-- end -->`` (NAME a section folder, or ``summary``), which the generator fills. Summary rows
+The documents mark each place with HTML comments, ``<!-- generated: NAME -->`` …
+``<!-- end -->`` (NAME a section folder, or a key of ``summary.toml``), which the generator fills. Summary rows
 (``docs/results/summary.toml``) are text with ``{{section|setting|column}}`` and
 ``{{section/file.csv|key=value|field:format}}`` placeholders. When the hash of a section's sources
 and configs no longer matches its fingerprint, the section is marked stale.
@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dva.analysis.bench import markdown_table
 from dva.analysis.plots import LATE_POINTS
 from dva.errors import DvaUsageError
 
@@ -116,27 +117,17 @@ def per_seed(values: list[str]) -> str:
     return " / ".join(values)
 
 
-def first_column(threshold: float) -> Callable[[list[Run]], str]:
-    def cell(runs: list[Run]) -> str:
-        times = []
-        for run in runs:
-            index = run.first(threshold)
-            times.append(
-                "never"
-                if index is None
-                else f"{run.wall_time[index] / 60:.1f} min ({steps(run.env_steps[index])} steps)"
-            )
-        return per_seed(times)
+def first_column(threshold: float, with_steps: bool = True) -> Callable[[list[Run]], str]:
+    """When each seed's evaluations first reached ``threshold``: minutes (and env steps), or "never"."""
 
-    return cell
+    def when(run: Run) -> str:
+        index = run.first(threshold)
+        if index is None:
+            return "never"
+        minutes = f"{run.wall_time[index] / 60:.1f}"
+        return f"{minutes} min ({steps(run.env_steps[index])} steps)" if with_steps else minutes
 
-
-def minutes_column(threshold: float) -> Callable[[list[Run]], str]:
-    def cell(runs: list[Run]) -> str:
-        indices = [run.first(threshold) for run in runs]
-        return per_seed(["never" if i is None else f"{run.wall_time[i] / 60:.1f}" for run, i in zip(runs, indices)])
-
-    return cell
+    return lambda runs: per_seed([when(run) for run in runs])
 
 
 def at_column(minutes: float | None, env_steps: float | None) -> Callable[[list[Run]], str]:
@@ -193,18 +184,13 @@ def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
     if match := re.fullmatch(r"first (-?[\d.]+)", spec):
         return f"first ≥ {match[1]}", first_column(float(match[1]))
     if match := re.fullmatch(r"minutes to (-?[\d.]+)", spec):
-        return f"minutes to {match[1]}", minutes_column(float(match[1]))
+        return f"minutes to {match[1]}", first_column(float(match[1]), with_steps=False)
     if match := re.fullmatch(r"at ([\d.]+) min", spec):
         return f"eval at {match[1]} min", at_column(float(match[1]), None)
     if match := re.fullmatch(r"at ([\d.]+)k steps", spec):
         return f"eval at {match[1]}k env steps", at_column(None, 1e3 * float(match[1]))
     allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps"])
     raise DvaUsageError(f"unknown results column {spec!r}; allowed: {allowed}")
-
-
-def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows]) + "\n"
 
 
 def csv_rows(path: Path) -> list[dict[str, str]]:
@@ -266,13 +252,13 @@ class Section:
                 rows = csv_rows(self.folder / table["csv"])
                 header = [name for name, _ in table["columns"]]
                 tables.append(
-                    markdown_table(header, [[csv_field(r, spec) for _, spec in table["columns"]] for r in rows])
+                    markdown_table(header, [[csv_field(r, spec) for _, spec in table["columns"]] for r in rows]) + "\n"
                 )
                 continue
             columns = [run_column(spec) for spec in table["columns"]]
             settings = table.get("settings", list(self.meta.get("runs", {})))
             rows = [[setting] + [cell(self.runs(setting)) for _, cell in columns] for setting in settings]
-            tables.append(markdown_table([table.get("first", "setting")] + [h for h, _ in columns], rows))
+            tables.append(markdown_table([table.get("first", "setting")] + [h for h, _ in columns], rows) + "\n")
         return tables
 
     def block(self, root: Path) -> str:
@@ -326,7 +312,7 @@ def fill(root: Path, text: str) -> str:
 
 def summary_block(root: Path, rows: list[dict]) -> str:
     header = list(rows[0])
-    table = markdown_table(header, [[fill(root, row[key]) for key in header] for row in rows])
+    table = markdown_table(header, [[fill(root, row[key]) for key in header] for row in rows]) + "\n"
     if STALE_MARK in table:
         table += f"\n{STALE_MARK} from a section whose code has changed since it was measured (marked stale there).\n"
     return table
