@@ -18,7 +18,8 @@ import pytest
 
 from dva.algorithms import build_agent, make_config
 from dva.algorithms.dreamer_math import lambda_returns, normalized_advantage, twohot_decode, update_return_scale
-from dva.algorithms.dreamerv3 import sample_onehot
+from dva.algorithms.dreamerv3 import clip_straight_through, sample_onehot
+from dva.networks.dreamer import LayerNormGRU
 from dva.training import load_run, train
 
 # 4 × 8 replayed steps per update at ratio 16 over 2 envs: collect 1 step, update once. No action
@@ -110,15 +111,16 @@ def test_policy_memory_carries_the_past_and_forgets_it_at_a_restart(dreamer_run)
     act = jax.jit(agent.act_recurrent)
     fresh = agent.initial_memory(agent.config.num_envs)
     key = jax.random.PRNGKey(0)  # the latent is sampled: the same key, the same sample
-    first_action, memory = act(policy, observation, fresh, key)
+    first_action, first_memory = act(policy, observation, fresh, key)
     np.testing.assert_allclose(first_action, jax.jit(agent.act)(policy, observation), atol=1e-6)
     assert first_action.shape == (2, 1) and np.all(np.abs(np.asarray(first_action)) <= 1.0)
-    # the same image seen again, now after a step: a different latent state, a different action
-    second_action, memory = act(policy, observation, memory, key)
-    assert np.abs(np.asarray(second_action - first_action)).max() > 1e-5
-    # a restart forgets everything before it
-    restarted, _ = act(policy, observation, memory.replace(restart=jnp.ones(2, bool)), key)
+    # the same image seen again, now after a step: a different latent state
+    _, memory = act(policy, observation, first_memory, key)
+    assert np.abs(np.asarray(memory.deter - first_memory.deter)).max() > 1e-5
+    # a restart forgets everything before it: the first step's state and action again
+    restarted, restarted_memory = act(policy, observation, memory.replace(restart=jnp.ones(2, bool)), key)
     np.testing.assert_allclose(restarted, first_action, atol=1e-6)
+    np.testing.assert_allclose(restarted_memory.deter, first_memory.deter, atol=1e-6)
 
 
 def test_replayed_sequences_restart_the_latent_at_episode_starts(dreamer_run):
@@ -198,7 +200,8 @@ def test_imagined_actions_carry_no_gradient_to_the_states_they_were_chosen_in(im
 def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuation_mode(imagined_actor_loss):
     """The actor's loss by hand from the imagined trajectory: λ-returns of the predicted rewards and
     the continuation's mode (1 where its logit is > 0), minus the critic's values, over max(1, S),
-    weighted by the chance of reaching each step. Being a mode, the continuation carries no
+    weighted by γ^t times the chance of reaching step t (the reference's cumprod(γ · cont) / γ).
+    Being a mode, the continuation carries no
     gradient: doubling the continuation head's logits leaves the actor's gradient as it was."""
     agent, params = imagined_actor_loss.agent, imagined_actor_loss.state.params
     cfg, model, critic, actor = agent.config, params["model"], params["critic"], params["actor"]
@@ -212,11 +215,13 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     value = np.asarray(twohot_decode(agent.critic.apply(critic, feats), agent.bins))
     # the pieces are checked against hand-computed values in test_dreamer_math.py; here, what goes in
     expected_returns = np.asarray(lambda_returns(reward, value, cont, cfg.gamma, cfg.lam))
-    expected_weight = np.cumprod(np.concatenate([np.ones_like(cont[:1]), cont[:-1]]), axis=0)
+    expected_weight = cfg.gamma ** np.arange(len(cont))[:, None] * np.cumprod(
+        np.concatenate([np.ones_like(cont[:1]), cont[:-1]]), axis=0
+    )
     expected_scale = update_return_scale(imagined_actor_loss.scale, expected_returns, cfg.return_decay)
     advantage = np.asarray(normalized_advantage(expected_returns, value[:-1], expected_scale))
     np.testing.assert_allclose(returns, expected_returns, rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(weight, expected_weight)
+    np.testing.assert_allclose(weight, expected_weight, rtol=1e-6)
     np.testing.assert_allclose(new_scale, expected_scale, rtol=1e-4)
     np.testing.assert_allclose(loss, -np.mean(expected_weight * advantage), rtol=1e-4, atol=1e-6)
 
@@ -229,6 +234,93 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     _, sharper_grad = imagined_actor_loss(actor, sharper)
     for before, after in zip(jax.tree.leaves(actor_grad), jax.tree.leaves(sharper_grad)):
         np.testing.assert_allclose(before, after, rtol=1e-5, atol=1e-8)
+
+
+def numpy_twohot(values: np.ndarray, bins: np.ndarray) -> np.ndarray:
+    """Two-hot of symlog(values) by hand: the weight split between the two bins around each."""
+    y = np.clip(np.sign(values) * np.log1p(np.abs(values)), bins[0], bins[-1])
+    upper = np.clip(np.searchsorted(bins, y, side="right"), 1, len(bins) - 1)
+    lower = upper - 1
+    above = (y - bins[lower]) / (bins[upper] - bins[lower])
+    encoded = np.zeros(values.shape + (len(bins),))
+    np.put_along_axis(encoded, lower[..., None], (1.0 - above)[..., None], -1)
+    np.put_along_axis(encoded, upper[..., None], above[..., None], -1)
+    return encoded
+
+
+def test_the_critic_learns_the_returns_and_stays_near_its_slow_copy(imagined_actor_loss):
+    """The critic's loss by hand: per imagined step, weighted as the actor's, the cross-entropy of
+    its distribution with the two-hot λ-return plus the cross-entropy with the two-hot of the slow
+    critic's value; after an update the slow critic is ``ema · slow + (1 − ema) · critic``."""
+    agent, state = imagined_actor_loss.agent, imagined_actor_loss.state
+    params = state.params
+    (_, (feats, returns, weight, _, _)), _ = imagined_actor_loss(params["actor"], params["model"])
+    slow = jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.PRNGKey(5), x.shape), params["critic"])
+    loss = agent.critic_loss(params["critic"], slow, feats, returns, weight)
+
+    bins = np.asarray(agent.bins, np.float64)
+    log_p = np.asarray(jax.nn.log_softmax(agent.critic.apply(params["critic"], feats[:-1]), -1), np.float64)
+    slow_p = np.asarray(jax.nn.softmax(agent.critic.apply(slow, feats[:-1]), -1), np.float64)
+    slow_symlog = slow_p @ bins
+    slow_value = np.sign(slow_symlog) * np.expm1(np.abs(slow_symlog))
+    assert np.abs(slow_value - np.asarray(returns)).max() > 1e-2  # two different targets
+    to_returns = -np.sum(numpy_twohot(np.asarray(returns, np.float64), bins) * log_p, -1)
+    to_slow = -np.sum(numpy_twohot(slow_value, bins) * log_p, -1)
+    np.testing.assert_allclose(loss, np.mean(np.asarray(weight) * (to_returns + to_slow)), rtol=1e-4)
+
+    starts = (imagined_actor_loss.deter[None], imagined_actor_loss.stoch[None])
+    new_params, new_slow, *_ = jax.jit(agent.behaviour_update)(
+        params, slow, dict(state.opt_states), jnp.asarray(1.0), starts, jax.random.PRNGKey(6)
+    )
+    ema = agent.config.critic_ema
+    for got, old, critic in zip(
+        jax.tree.leaves(new_slow), jax.tree.leaves(slow), jax.tree.leaves(new_params["critic"])
+    ):
+        np.testing.assert_allclose(got, ema * np.asarray(old) + (1 - ema) * np.asarray(critic), rtol=1e-5, atol=1e-7)
+
+
+def test_actions_reach_the_model_clipped_by_value_with_their_gradient_kept():
+    """Inside the box an action passes as it is; outside, the model reads the clipped value and
+    the actor still gets the gradient scaled by 1 / |a| (``jnp.clip`` would give none)."""
+    actions = jnp.array([-2.5, -1.0, 0.3, 0.99, 4.0])
+    np.testing.assert_allclose(clip_straight_through(actions), jnp.clip(actions, -1.0, 1.0), rtol=1e-7)
+    gradient = jax.grad(lambda a: jnp.sum(jnp.arange(1.0, 6.0) * clip_straight_through(a)))(actions)
+    np.testing.assert_allclose(gradient, [1 / 2.5, 2.0, 3.0, 4.0, 5 / 4.0], rtol=1e-6)
+
+
+def test_the_gru_keeps_a_share_of_its_state_set_by_the_update_bias():
+    """The reference's GRU: with the gates' Dense at zero, LayerNorm gives zero pre-activations, the
+    candidate tanh(σ(0) · 0) = 0 and the update gate σ(0 − 1): ``h' = (1 − σ(−1)) h``; with
+    weights, ``h'`` is the gated formula by hand."""
+    cell = LayerNormGRU(4)
+    deter, x = jax.random.normal(jax.random.PRNGKey(0), (3, 4)), jax.random.normal(jax.random.PRNGKey(1), (3, 5))
+    params = cell.init(jax.random.PRNGKey(2), deter, x)
+    zero = jax.tree.map(jnp.zeros_like, params)
+    zero["params"]["LayerNorm_0"]["scale"] = jnp.ones(12)
+    np.testing.assert_allclose(cell.apply(zero, deter, x), (1 - 1 / (1 + np.e)) * np.asarray(deter), rtol=1e-6)
+
+    kernel = np.asarray(params["params"]["Dense_0"]["kernel"])
+    pre = np.concatenate([deter, x], -1) @ kernel
+    normed = (pre - pre.mean(-1, keepdims=True)) / np.sqrt(pre.var(-1, keepdims=True) + 1e-6)
+    sigmoid = lambda v: 1 / (1 + np.exp(-v))
+    reset, candidate, update = np.split(normed, 3, -1)
+    candidate, update = np.tanh(sigmoid(reset) * candidate), sigmoid(update - 1)
+    expected = update * candidate + (1 - update) * np.asarray(deter)
+    np.testing.assert_allclose(cell.apply(params, deter, x), expected, rtol=1e-4, atol=1e-6)
+
+
+def test_evaluation_samples_the_actor_and_keys_make_it_reproducible(dreamer_run):
+    """As the 2023 reference's eval mode: the action is a sample of the actor's Gaussian (two keys,
+    two actions; one key, one action), inside the box."""
+    _, agent, state = load_run(dreamer_run)
+    policy, observation = agent.policy(state), agent.env.observe(state.env)
+    memory = agent.initial_memory(agent.config.num_envs)
+    act = jax.jit(agent.act_recurrent)
+    first, _ = act(policy, observation, memory, jax.random.PRNGKey(0))
+    again, _ = act(policy, observation, memory, jax.random.PRNGKey(0))
+    other, _ = act(policy, observation, memory, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(first, again)
+    assert np.abs(np.asarray(first - other)).max() > 1e-3 and np.all(np.abs(np.asarray(first)) <= 1.0)
 
 
 def test_onehot_samples_follow_the_probabilities_and_carry_their_gradient():

@@ -87,12 +87,12 @@ def test_discount_follows_the_episode_length_rule():
     assert discount_for(20) == 0.95 and discount_for(100_000) == 0.995
 
 
-def small_agent(observation: str = "state", **overrides) -> TDMPC2:
+def small_agent(observation: str = "state", task: str = "cartpole_balance", **overrides) -> TDMPC2:
     values = {**TINY, **overrides}
     if observation == "state":
         values.pop("image_size")
-    config = make_config("cartpole_balance", "tdmpc2" if observation == "pixels" else "tdmpc2-state", "cpu", **values)
-    return build_agent("cartpole_balance", "tdmpc2-state" if observation == "state" else "tdmpc2", config)
+    algo = "tdmpc2-state" if observation == "state" else "tdmpc2"
+    return build_agent(task, algo, make_config(task, algo, "cpu", **values))
 
 
 def one_sequence(terminated_at: int | None = None, truncated_at: int | None = None) -> Step:
@@ -189,13 +189,128 @@ def test_an_update_moves_the_target_qs_by_tau(tdmpc2_run):
     expected = jax.tree.map(lambda q, target: tau * q + (1 - tau) * target, updated.params["q"], state.target_q)
     for got, want in zip(jax.tree.leaves(updated.target_q), jax.tree.leaves(expected)):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
-    # the policy prior's update leaves the world model alone and the model's leaves the prior
     assert float(metrics["q_scale"]) >= 1.0
     changed = lambda name: any(
         np.abs(np.asarray(a) - np.asarray(b)).max() > 0
         for a, b in zip(jax.tree.leaves(updated.params[name]), jax.tree.leaves(state.params[name]))
     )
     assert changed("policy") and changed("dynamics") and changed("encoder")
+
+
+class LoudPolicyLoss(TDMPC2):
+    """The policy prior's loss times 1000 (its gradient and its Adam step change)."""
+
+    def policy_loss(self, *args):
+        loss, q_scale = super().policy_loss(*args)
+        return 1000.0 * loss, q_scale
+
+
+def test_the_policy_update_trains_only_the_prior_and_the_model_update_not_the_prior(tdmpc2_run):
+    """The world model's new parameters do not depend on the policy prior's loss (another loss,
+    the same model), and the model loss passes no gradient to the prior (its TD target's actions
+    come from the prior without gradient, as in the reference)."""
+    _, agent, state = load_run(tdmpc2_run)
+    loud = LoudPolicyLoss(agent.env, agent.config)
+    key = jax.random.PRNGKey(3)
+    updated, _ = jax.jit(agent.update)(state, key)
+    updated_loud, _ = jax.jit(loud.update)(state, key)
+    for name in ("encoder", "dynamics", "reward", "termination", "q"):
+        for a, b in zip(jax.tree.leaves(updated.params[name]), jax.tree.leaves(updated_loud.params[name])):
+            np.testing.assert_array_equal(a, b)
+    policy_moved = [np.abs(np.asarray(a) - np.asarray(b)).max() for a, b in zip(
+        jax.tree.leaves(updated.params["policy"]), jax.tree.leaves(updated_loud.params["policy"]))]  # fmt: skip
+    assert max(policy_moved) > 0  # the loud loss did reach the prior
+
+    batch = agent.sequences(agent.replay.sample_sequences(state.replay, key))
+    obs = agent.augment(batch.obs, key)
+    next_z = agent.encode(state.params, obs[1:])
+    model = {name: value for name, value in state.params.items() if name != "policy"}
+
+    def model_loss_of_the_prior(policy):
+        td_target = agent.td_target({**state.params, "policy": policy}, state.target_q, batch, next_z, key)
+        return agent.model_loss(model, batch, obs[0], next_z, td_target, key)[0]
+
+    gradient = jax.grad(model_loss_of_the_prior)(state.params["policy"])
+    assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(gradient))
+
+
+def controlled_policy(agent: TDMPC2, mean: float, raw_log_std: float) -> dict:
+    """Policy-prior parameters whose output is the constant ``(mean, raw_log_std)`` per action."""
+    params = agent.policy_net.init(jax.random.PRNGKey(0), jnp.zeros((1, agent.latent_dim)))
+    last = max((name for name in params["params"] if name.startswith("Dense")), key=lambda n: int(n.split("_")[1]))
+    action_dim = agent.task.action_dim
+    bias = jnp.concatenate([jnp.full(action_dim, mean), jnp.full(action_dim, raw_log_std)])
+    params["params"][last] = {"kernel": jnp.zeros_like(params["params"][last]["kernel"]), "bias": bias}
+    return params
+
+
+def test_the_policy_samples_a_squashed_gaussian_with_the_scaled_entropy_term():
+    """``tanh(μ + σε)``, and the entropy term ``−A · log N(ε; 0, σ)`` summed over the A actions
+    (the reference's scaled entropy), by hand for a prior whose output is known, on the Hopper's
+    three actions."""
+    agent = small_agent(task="hopper")
+    cfg = agent.config
+    policy = controlled_policy(agent, mean=0.3, raw_log_std=-0.5)
+    z = jax.random.uniform(jax.random.PRNGKey(1), (5, agent.latent_dim))
+    key = jax.random.PRNGKey(2)
+    action, mean_action, entropy = agent.policy_sample(policy, z, key)
+    log_std = cfg.log_std_min + 0.5 * (cfg.log_std_max - cfg.log_std_min) * (np.tanh(-0.5) + 1.0)
+    noise = np.asarray(jax.random.normal(key, (5, 3)))
+    np.testing.assert_allclose(action, np.tanh(0.3 + noise * np.exp(log_std)), rtol=1e-5)
+    np.testing.assert_allclose(mean_action, np.full((5, 3), np.tanh(0.3)), rtol=1e-6)
+    log_prob = np.sum(-0.5 * noise**2 - log_std - 0.5 * np.log(2 * np.pi), -1)
+    np.testing.assert_allclose(entropy, -3 * log_prob, rtol=1e-5)
+
+
+def test_the_td_target_bootstraps_the_smaller_of_two_target_qs_at_the_priors_action():
+    """``r + γ (1 − terminated) min(Q̄₁, Q̄₂)(z', π(z'))`` by hand with a two-member ensemble."""
+    agent = small_agent()
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    params = state.params
+    # a target ensemble whose members disagree (the initial output layers are zero)
+    target_q = jax.tree.map(lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(4), x.shape), state.target_q)
+    batch = agent.sequences(one_sequence(terminated_at=1))
+    next_z = jax.random.uniform(jax.random.PRNGKey(1), (3, 1, agent.latent_dim))
+    key = jax.random.PRNGKey(2)
+    target = np.asarray(agent.td_target(params, target_q, batch, next_z, key))
+    policy_key, _ = jax.random.split(key)
+    action = agent.policy_sample(params["policy"], next_z, policy_key)[0]
+    members = np.asarray(twohot_decode(agent.q.apply(target_q, jnp.concatenate([next_z, action], -1)), agent.bins))
+    assert np.abs(members[0] - members[1]).max() > 1e-3
+    expected = np.array([1.0, 2.0, 3.0])[:, None] + agent.gamma * np.array([1.0, 0.0, 1.0])[:, None] * members.min(0)
+    np.testing.assert_allclose(target, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_the_policy_loss_rewards_q_over_its_scale_and_entropy_and_updates_the_scale():
+    """``−Σ_t ρ^t (α · entropy + Q / S) / (B (H + 1))`` with S moved towards the first latents'
+    5th–95th percentile spread of Q (at least 1) by ``tau`` — by hand from its pieces; its sign:
+    raising Q lowers the loss. Dropout off, so that Q is the members' plain mean."""
+    agent = small_agent(dropout=0.0, batch_size=8)
+    cfg = agent.config
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    q_params = jax.tree.map(lambda x: x + 0.5 * jax.random.normal(jax.random.PRNGKey(4), x.shape), state.params["q"])
+    zs = jax.random.uniform(jax.random.PRNGKey(1), (cfg.horizon + 1, 8, agent.latent_dim))
+    reached = jnp.ones((cfg.horizon + 1, 8), bool).at[2:, 0].set(False)
+    key, old_scale = jax.random.PRNGKey(2), jnp.asarray(1.5)
+    loss, q_scale = agent.policy_loss(state.params["policy"], q_params, zs, reached, old_scale, key)
+
+    action_key, _, _ = jax.random.split(key, 3)
+    action, _, entropy = agent.policy_sample(state.params["policy"], zs, action_key)
+    q = np.asarray(twohot_decode(agent.q.apply(q_params, jnp.concatenate([zs, action], -1)), agent.bins)).mean(0)
+    spread = np.percentile(q[0], 95) - np.percentile(q[0], 5)
+    expected_scale = 1.5 + cfg.tau * (max(spread, 1.0) - 1.5)
+    weight = cfg.rho ** np.arange(cfg.horizon + 1)[:, None] * np.asarray(reached)
+    expected = -np.sum(weight * (cfg.entropy_coef * np.asarray(entropy) + q / expected_scale)) / (8 * (cfg.horizon + 1))
+    np.testing.assert_allclose(q_scale, expected_scale, rtol=1e-5)
+    np.testing.assert_allclose(loss, expected, rtol=1e-4)
+    raised = jax.tree.map(lambda x: x, q_params)  # every member's output bias + 1: Q rises by ≈ 1
+    higher = lambda p: agent.policy_loss(state.params["policy"], p, zs, reached, old_scale, key)[0]
+    last = max((n for n in raised["params"] if n.startswith("Dense")), key=lambda n: int(n.split("_")[1]))
+    bins = np.asarray(agent.bins)
+    shift = np.zeros(len(bins), np.float32)
+    shift[-1] = 50.0  # all probability on the top bin: Q at its largest
+    raised["params"][last]["bias"] = raised["params"][last]["bias"] + shift
+    assert float(higher(raised)) < float(loss)
 
 
 def test_evaluation_carries_the_plan_and_the_first_step_plans_afresh(tdmpc2_run):

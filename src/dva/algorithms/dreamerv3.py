@@ -1,32 +1,37 @@
 """DreamerV3 (Hafner et al. 2023) from pixels — the paper's model-based visual baseline — or
 from the state vector (``observation="state"``: its MLP encoder and decoder on the ``symlog`` of
-the state, as the reference runs proprioceptive tasks).
+the state, as the reference runs proprioceptive tasks). The reference is the 2023 release of
+``danijar/dreamerv3`` (the paper's version; the 2024 rewrite changed the model).
 
 One iteration collects ``collect_steps`` steps of every env with the actor acting on the RSSM's
 posterior state (stored as single frames in a sequence replay), then makes ``updates`` updates,
 each on ``batch_size`` replayed sequences of ``batch_length`` steps (``train_ratio`` replayed
 steps per policy step):
 
-* **world model**: the RSSM observes the sequence (its state reset at episode starts); loss =
-  reconstruction (squared error summed over pixels, or over the symlog state's entries) +
-  two-hot symlog reward + continuation
+* **world model**: the RSSM (the reference's GRU: LayerNorm on its gates, update bias −1)
+  observes the sequence (its state reset at episode starts); loss = reconstruction (squared error
+  summed over pixels, or over the symlog state's entries) + two-hot symlog reward + continuation
   (Bernoulli) + 0.5 · dynamics KL + 0.1 · representation KL, each KL with 1 nat free;
 * **imagination**: from every posterior state, ``horizon`` steps of the prior with actions
-  sampled from the actor, which reads each state through a stop-gradient, the model frozen;
+  sampled from the actor, which reads each state through a stop-gradient, the model frozen; the
+  model reads each action clipped to [−1, 1] by a stop-gradient rescaling, so that samples
+  outside the box still carry gradient; step t weighs γ^t times the chance it is reached;
 * **critic**: two-hot symlog regression on the λ-returns of the imagined rewards and the
   continuation head's mode (1 or 0), plus a regulariser towards its EMA (``critic_ema``);
 * **actor**: the advantage ``(R − v) / max(1, S)``, S the EMA of the returns' 5th–95th
   percentile range, maximised by backpropagating through the imagined trajectory (the frozen
   model, the reward head and the critic) — the 2023 reference's gradient for continuous actions —
   or, with ``actor_gradient="reinforce"``, by REINFORCE on the same advantage; plus an entropy
-  bonus.
+  bonus. Evaluation samples the actor, as the reference's eval mode does.
 
-Simplified against the reference implementation (documented, the method kept): the RSSM's
-initial state is zeros rather than learned; a GRU with LayerNorm on its input rather than the
-block-GRU; Adam with global-norm clipping rather than adaptive gradient clipping; the reward and
-continuation of a step are predicted from the state it leads to, taken from the prior where the
-auto-reset hid the last frame of an episode; replayed sequences start from a fresh state; the
-actor's output layer is zero-initialised like the reward and critic heads (its first mean action is 0).
+Where this differs from the 2023 release (the method kept): the RSSM's initial state is zeros
+rather than learned; weights start from flax's LeCun normal rather than the reference's truncated
+normal over the average fan; the actor's output layer is zero-initialised like the reward and
+critic heads (its first mean action is 0); the reward and continuation of a step are predicted
+from the state it leads to, taken from the prior where the auto-reset hid the last frame of an
+episode; replayed sequences start from a fresh state rather than the previous batch's last
+latent, which the release carries over. Adam with global-norm clipping (1000 for the model, 100 for actor
+and critic) is the release's own optimiser.
 """
 
 from __future__ import annotations
@@ -79,6 +84,10 @@ class DreamerV3Config:
     classes: int = 32
     units: int = 512
     layers: int = 2  # hidden layers of the reward, continuation, actor and critic heads
+    # the state's encoder and decoder (observation="state"): the 2023 reference's dmc_proprio config
+    # sets the heads to 2 × 512 but leaves these at its defaults
+    mlp_units: int = 1024
+    mlp_layers: int = 5
     cnn_depth: int = 32
     unimix: float = 0.01
     free_nats: float = 1.0
@@ -185,6 +194,13 @@ def sample_onehot(logits: jax.Array, key: jax.Array) -> jax.Array:
     return sample + probs - jax.lax.stop_gradient(probs)
 
 
+def clip_straight_through(action: jax.Array) -> jax.Array:
+    """``action`` clipped to [−1, 1] by a stop-gradient rescaling ``a / sg(max(1, |a|))``, as the
+    reference feeds actions to its RSSM: the value of ``jnp.clip``, but a sample outside the box
+    still passes (scaled) gradient to the actor, where ``jnp.clip`` would pass none."""
+    return action / jax.lax.stop_gradient(jnp.maximum(1.0, jnp.abs(action)))
+
+
 def features(deter: jax.Array, stoch: jax.Array) -> jax.Array:
     """What the heads read: ``[h, flatten(z)]``."""
     return jnp.concatenate([deter, stoch.reshape(stoch.shape[:-2] + (-1,))], axis=-1)
@@ -218,8 +234,8 @@ class DreamerV3:
         if self.pixels:
             self.encoder, self.decoder = ConvEncoder(cfg.cnn_depth), ConvDecoder(cfg.cnn_depth, cfg.image_size)
         else:
-            self.encoder = MLPEncoder(cfg.units, cfg.layers)
-            self.decoder = DreamerMLP(cfg.units, cfg.layers, env.task.obs_dim)
+            self.encoder = MLPEncoder(cfg.mlp_units, cfg.mlp_layers)
+            self.decoder = DreamerMLP(cfg.mlp_units, cfg.mlp_layers, env.task.obs_dim)
         self.rssm = RSSM(cfg.deter, cfg.stoch, cfg.classes, cfg.units)
         self.reward_head = DreamerMLP(cfg.units, cfg.layers, cfg.num_bins, zero_output=True)
         self.cont_head = DreamerMLP(cfg.units, cfg.layers, 1)
@@ -384,15 +400,23 @@ class DreamerV3:
     def act_recurrent(
         self, policy: dict, observation: Observation, memory: Latent, key: jax.Array
     ) -> tuple[jax.Array, Latent]:
-        """The actor's mean action on a posterior sample; the memory moves on by one step.
+        """An action sampled from the actor on a posterior sample, as the 2023 reference evaluates
+        (its eval mode samples the actor's Gaussian, as training does); the memory moves on by one
+        step.
 
-        The latent state is sampled, as the reference does when it evaluates: the model and the
-        actor only ever see sampled one-hot states, and the combination of each categorical's most
-        likely class is not one of them when the posterior is spread out. On Cart-pole balance
-        (state), one trained policy scored 1102 with that mode and 1842 with samples."""
-        latent = self.step_latent(policy["model"], memory, observation[self.config.observation], key)
-        action, _ = self.action_distribution(policy["actor"], features(latent.deter, latent.stoch))
+        The model and the actor only ever see sampled one-hot states and sampled actions; the
+        combination of each categorical's most likely class is not such a state when the posterior
+        is spread out (on Cart-pole balance, state, one trained policy scored 1102 with that mode
+        and 1842 with samples)."""
+        latent_key, action_key = jax.random.split(key)
+        latent = self.step_latent(policy["model"], memory, observation[self.config.observation], latent_key)
+        action = self.sample_action(policy["actor"], features(latent.deter, latent.stoch), action_key)
         return action, latent.replace(action=action, restart=jnp.zeros_like(latent.restart))
+
+    def sample_action(self, actor: dict, feature: jax.Array, key: jax.Array) -> jax.Array:
+        """An action from the actor's Gaussian, clipped to the action box."""
+        mean, std = self.action_distribution(actor, feature)
+        return jnp.clip(mean + std * jax.random.normal(key, mean.shape), -1.0, 1.0)
 
     def act(self, policy: dict, observation: Observation) -> jax.Array:
         """The action from a fresh memory (as at an episode's first step), with a fixed key."""
@@ -419,7 +443,7 @@ class DreamerV3:
             # gradient is its effect on the future through the model, with later actions held
             mean, std = self.action_distribution(actor, jax.lax.stop_gradient(feature))
             action = mean + std * jax.random.normal(action_key, mean.shape)
-            deter = self.transition(model, deter, stoch, jnp.clip(action, -1.0, 1.0))
+            deter = self.transition(model, deter, stoch, clip_straight_through(action))
             stoch = sample_onehot(self.prior(model, deter), stoch_key)
             return (deter, stoch), (feature, action, mean, std)
 
@@ -449,7 +473,9 @@ class DreamerV3:
         cont = (self.cont_head.apply(model["cont"], feats[1:])[..., 0] > 0.0).astype(reward.dtype)
         value = twohot_decode(self.critic.apply(critic, feats), self.bins)
         returns = lambda_returns(reward, value, cont, cfg.gamma, cfg.lam)  # (H, M)
-        weight = jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cont[:-1]]), axis=0)  # step t reached
+        # step t's weight: γ^t times the chance it is reached (the reference's cumprod(γ·cont) / γ;
+        # its starts, posterior states of replayed frames, are never terminal here)
+        weight = jnp.cumprod(jnp.concatenate([jnp.ones_like(cont[:1]), cfg.gamma * cont[:-1]]), axis=0)
         scale = update_return_scale(return_scale, jax.lax.stop_gradient(returns), cfg.return_decay)
         # the policy's mean and std at the imagined states, read without their gradient: as the
         # actor's own output on sg(features), which imagine already computed
@@ -462,6 +488,23 @@ class DreamerV3:
         entropy = jnp.sum(jnp.log(std) + 0.5 * jnp.log(2 * jnp.pi * jnp.e), -1)
         loss = -jnp.mean(weight * (objective + cfg.entropy * entropy))
         return loss, (feats, jax.lax.stop_gradient(returns), weight, scale, jnp.mean(std))
+
+    def critic_loss(
+        self, critic: dict, slow_critic: dict, feats: jax.Array, returns: jax.Array, weight: jax.Array
+    ) -> jax.Array:
+        """The critic's loss on imagined states ``feats`` (H + 1, M, F; the last has no return):
+        per step, weighted by ``weight``, the cross-entropy of its two-hot distribution with the
+        two-hot λ-return plus the cross-entropy with the two-hot of the slow critic's value (the
+        reference's regulariser towards the critic's EMA, scale 1)."""
+        logits = self.critic.apply(critic, feats[:-1])
+        slow_value = twohot_decode(self.critic.apply(slow_critic, feats[:-1]), self.bins)
+        return jnp.mean(
+            weight
+            * (
+                categorical_cross_entropy(logits, twohot(returns, self.bins))
+                + categorical_cross_entropy(logits, twohot(slow_value, self.bins))
+            )
+        )
 
     def behaviour_update(
         self,
@@ -478,19 +521,9 @@ class DreamerV3:
         (a_loss, (feats, returns, weight, return_scale, mean_std)), actor_grads = jax.value_and_grad(
             self.actor_loss, has_aux=True
         )(params["actor"], model, params["critic"], return_scale, deter, stoch, key)
-        slow_value = twohot_decode(self.critic.apply(slow_critic, feats[:-1]), self.bins)
-
-        def critic_loss(critic):
-            logits = self.critic.apply(critic, feats[:-1])
-            return jnp.mean(
-                weight
-                * (
-                    categorical_cross_entropy(logits, twohot(returns, self.bins))
-                    + categorical_cross_entropy(logits, twohot(slow_value, self.bins))
-                )
-            )
-
-        c_loss, critic_grads = jax.value_and_grad(critic_loss)(params["critic"])
+        c_loss, critic_grads = jax.value_and_grad(self.critic_loss)(
+            params["critic"], slow_critic, feats, returns, weight
+        )
         new = {}
         for name, grads in (("actor", actor_grads), ("critic", critic_grads)):
             updates, opt_states[name] = self.optimizers[name].update(grads, opt_states[name], params[name])
@@ -567,8 +600,7 @@ class DreamerV3:
         def collect_step(state, step_key):
             latent_key, action_key = jax.random.split(step_key)
             latent = self.step_latent(state.params["model"], state.latent, self.observed(state.env), latent_key)
-            mean, std = self.action_distribution(state.params["actor"], features(latent.deter, latent.stoch))
-            action = jnp.clip(mean + std * jax.random.normal(action_key, mean.shape), -1.0, 1.0)
+            action = self.sample_action(state.params["actor"], features(latent.deter, latent.stoch), action_key)
             state, finished = collect_into_replay(self.env, self.replay, state, action, stored=self.observed)
             state = state.replace(latent=latent.replace(action=action, restart=state.first))
             return state, (finished, state.first)

@@ -29,9 +29,11 @@ updates, each on ``batch_size`` replayed sequences of ``horizon`` + 1 observatio
 ``num_pi_trajs`` of them rolled out by the policy prior, the others drawn from a Gaussian whose
 mean starts at the previous step's plan shifted by one — scored by the model's discounted
 rewards plus ``γ^H`` Q at the end (zero after a predicted termination); ``mppi_iterations`` times
-the Gaussian is refit to the ``num_elites`` best, weighted by ``exp(temperature · value)``. The
+the Gaussian is refit to the ``num_elites`` best, weighted by ``exp(temperature · value)``
+(two refits more for 20 or more actions, the reference's rule). The
 action is the first of one elite drawn by that weight, plus the final std's noise while training
 (not in evaluation, where the plan is carried from step to step as a recurrent policy's memory).
+The Q members use dropout in the model and policy-prior updates, not in the TD target or the planner.
 The discount follows TD-MPC2's rule from the episode's length in agent steps ``T``:
 ``(T/5 − 1) / (T/5)`` within [0.95, 0.995].
 
@@ -270,11 +272,19 @@ class TDMPC2:
         return self.termination_head.apply(params["termination"], z)[..., 0] > 0.0
 
     def q_value(
-        self, q_params: dict, z: jax.Array, action: jax.Array, key: jax.Array, reduce: Literal["min", "mean"]
+        self,
+        q_params: dict,
+        z: jax.Array,
+        action: jax.Array,
+        key: jax.Array,
+        reduce: Literal["min", "mean"],
+        dropout_key: jax.Array | None = None,
     ) -> jax.Array:
-        """The min or the mean of two Q members drawn at random (the reference's rule)."""
+        """The min or the mean of two Q members drawn at random (the reference's rule), with
+        dropout where ``dropout_key`` is given (the reference's Q in training mode)."""
         members = jax.random.choice(key, self.config.num_q, (2,), replace=False)
-        values = twohot_decode(self.q.apply(q_params, concat_action(z, action), members), self.bins)
+        logits = self.q.apply(q_params, concat_action(z, action), members, dropout_key=dropout_key)
+        values = twohot_decode(logits, self.bins)
         return jnp.min(values, 0) if reduce == "min" else jnp.mean(values, 0)
 
     def policy_sample(self, policy: dict, z: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -290,6 +300,12 @@ class TDMPC2:
         return action, jnp.tanh(mean), -mean.shape[-1] * log_prob
 
     # ---- planning -----------------------------------------------------------------------------
+    @property
+    def mppi_iterations(self) -> int:
+        """The configured refits, two more for 20 or more actions (the reference's rule for large
+        action spaces: the Humanoid's 21)."""
+        return self.config.mppi_iterations + 2 * (self.task.action_dim >= 20)
+
     def trajectory_value(self, params: dict, z: jax.Array, actions: jax.Array, key: jax.Array) -> jax.Array:
         """The value of action sequences ``actions`` (H, S, A) from latents ``z`` (S, L): the
         model's discounted rewards, then ``γ^H`` × Q (the mean of two members) with the policy's
@@ -341,7 +357,8 @@ class TDMPC2:
             jnp.zeros(cfg.num_elites),
             jnp.zeros((cfg.horizon, cfg.num_elites, action_dim)),
         )
-        keys = (jax.random.split(sample_key, cfg.mppi_iterations), jax.random.split(value_key, cfg.mppi_iterations))
+        iterations = self.mppi_iterations
+        keys = (jax.random.split(sample_key, iterations), jax.random.split(value_key, iterations))
         (mean, std, score, elite_actions), _ = jax.lax.scan(refit, initial, keys)
         chosen = jax.random.categorical(choice_key, jnp.log(score + 1e-20))
         action = elite_actions[0, chosen]
@@ -461,9 +478,10 @@ class TDMPC2:
         """The policy prior's loss on the rolled-out latents ``zs`` (H + 1, B, L), and the Q scale
         updated with this batch's first latents."""
         cfg = self.config
-        action_key, q_key = jax.random.split(key)
+        action_key, q_key, dropout_key = jax.random.split(key, 3)
         action, _, entropy = self.policy_sample(policy, zs, action_key)
-        q = self.q_value(q_params, zs, action, q_key, "mean")
+        # the Q members in training mode, dropout on, as the reference's policy update reads them
+        q = self.q_value(q_params, zs, action, q_key, "mean", dropout_key)
         low, high = jnp.percentile(jax.lax.stop_gradient(q[0]), jnp.array([5.0, 95.0]))
         spread = high - low
         q_scale = q_scale + cfg.tau * (jnp.maximum(spread, 1.0) - q_scale)

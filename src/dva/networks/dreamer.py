@@ -154,6 +154,23 @@ class ConvDecoder(nn.Module):
         return x.reshape(batch_shape + x.shape[1:])
 
 
+class LayerNormGRU(nn.Module):
+    """The 2023 DreamerV3 reference's GRU: one bias-free Dense over ``[h, x]`` to the three gates'
+    pre-activations, LayerNorm over all of them, the reset gate applied to the candidate's
+    pre-activation, and the update gate's pre-activation shifted by −1 (the state starts by
+    keeping most of itself). Returns the next ``h``."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, deter: jax.Array, x: jax.Array) -> jax.Array:
+        gates = nn.LayerNorm()(nn.Dense(3 * self.features, use_bias=False)(jnp.concatenate([deter, x], -1)))
+        reset, candidate, update = jnp.split(gates, 3, axis=-1)
+        candidate = jnp.tanh(jax.nn.sigmoid(reset) * candidate)
+        update = jax.nn.sigmoid(update - 1.0)
+        return update * candidate + (1.0 - update) * deter
+
+
 class RSSM(nn.Module):
     """DreamerV3's recurrent state-space model: a deterministic GRU state ``h`` and a stochastic
     state ``z`` of ``stoch`` categoricals with ``classes`` classes each (one-hot, (…, stoch, classes)).
@@ -170,13 +187,13 @@ class RSSM(nn.Module):
     def setup(self) -> None:
         self.input_layer = nn.Dense(self.units)
         self.input_norm = nn.LayerNorm()
-        self.cell = nn.GRUCell(features=self.deter)
+        self.cell = LayerNormGRU(self.deter)
         self.prior_net = DreamerMLP(self.units, 1, self.stoch * self.classes)
         self.posterior_net = DreamerMLP(self.units, 1, self.stoch * self.classes)
 
     def transition(self, deter: jax.Array, stoch: jax.Array, action: jax.Array) -> jax.Array:
         x = jnp.concatenate([stoch.reshape(stoch.shape[:-2] + (-1,)), action], axis=-1)
-        return self.cell(deter, nn.silu(self.input_norm(self.input_layer(x))))[0]
+        return self.cell(deter, nn.silu(self.input_norm(self.input_layer(x))))
 
     def _logits(self, net: nn.Module, x: jax.Array) -> jax.Array:
         return net(x).reshape(x.shape[:-1] + (self.stoch, self.classes))
