@@ -1,7 +1,7 @@
 """DreamerV3 through the training loop (a tiny model on Cart-pole balance): logs, evaluation with
 its recurrent state, a checkpoint that restores its replay and latents, a world model whose
 reconstruction improves, the policy's memory (reset at episode starts), and the train-ratio
-arithmetic. Its numerical pieces are tested in ``test_dreamer_math.py``; learning to balance is a
+arithmetic. Its numerical pieces are tested in ``test_model_based_math.py``; learning to balance is a
 slow test (``test_learning.py``)."""
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import optax
 import pytest
 
 from dva.algorithms import build_agent, make_config
-from dva.algorithms.dreamer_math import lambda_returns, normalized_advantage, twohot_decode, update_return_scale
 from dva.algorithms.dreamerv3 import clip_straight_through, sample_onehot
+from dva.algorithms.model_based_math import lambda_returns, normalized_advantage, twohot_decode, update_return_scale
 from dva.networks.dreamer import LayerNormGRU
 from dva.training import load_run, train
 
@@ -213,7 +213,7 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     reward = np.asarray(twohot_decode(agent.reward_head.apply(model["reward"], feats[1:]), agent.bins))
     cont = np.asarray(agent.cont_head.apply(model["cont"], feats[1:])[..., 0] > 0.0, np.float32)
     value = np.asarray(twohot_decode(agent.critic.apply(critic, feats), agent.bins))
-    # the pieces are checked against hand-computed values in test_dreamer_math.py; here, what goes in
+    # the pieces are checked against hand-computed values in test_model_based_math.py; here, what goes in
     expected_returns = np.asarray(lambda_returns(reward, value, cont, cfg.gamma, cfg.lam))
     expected_weight = cfg.gamma ** np.arange(len(cont))[:, None] * np.cumprod(
         np.concatenate([np.ones_like(cont[:1]), cont[:-1]]), axis=0

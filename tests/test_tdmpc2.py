@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms import build_agent, make_config
-from dva.algorithms.dreamer_math import twohot, twohot_decode
+from dva.algorithms.model_based_math import twohot, twohot_decode
 from dva.algorithms.tdmpc2 import TDMPC2, discount_for
 from dva.envs import PixelObservations
 from dva.networks.tdmpc2 import simnorm

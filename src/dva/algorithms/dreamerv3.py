@@ -45,7 +45,7 @@ import optax
 from flax import struct
 
 from dva.algorithms.base import nan_loss_reason
-from dva.algorithms.dreamer_math import (
+from dva.algorithms.model_based_math import (
     categorical_cross_entropy,
     kl_balance_losses,
     lambda_returns,

@@ -57,7 +57,7 @@ import optax
 from flax import struct
 
 from dva.algorithms.base import nan_loss_reason
-from dva.algorithms.dreamer_math import categorical_cross_entropy, symlog_bins, twohot, twohot_decode
+from dva.algorithms.model_based_math import categorical_cross_entropy, symlog_bins, twohot, twohot_decode
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.augmentation import random_shift
 from dva.envs import Observation, PixelObservations

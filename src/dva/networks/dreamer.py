@@ -177,7 +177,7 @@ class RSSM(nn.Module):
 
     ``transition(h, z, a)`` is the next ``h``; ``prior(h)`` predicts ``z``'s logits from ``h`` alone
     (imagination), ``posterior(h, embedding)`` from ``h`` and the image (observation); the agent
-    mixes them with the uniform distribution (``dreamer_math.unimix_logits``)."""
+    mixes them with the uniform distribution (``model_based_math.unimix_logits``)."""
 
     deter: int = 512
     stoch: int = 32

@@ -1,7 +1,7 @@
-"""The numerical pieces of DreamerV3 (Hafner et al. 2023), as pure functions: symlog squashing,
-two-hot regression targets, λ-returns with continuation flags, percentile return normalisation,
-KL balancing with free bits and unimix categoricals. The agent (world model, actor, critic) is
-built from these; each is tested against hand-computed values.
+"""The numerical pieces of the model-based agents, as pure functions: symlog squashing and
+two-hot regression targets (DreamerV3's reward and critic heads, TD-MPC2's reward and Q heads),
+λ-returns with continuation flags, percentile return normalisation, KL balancing with free bits
+and unimix categoricals (DreamerV3's). Each is tested against hand-computed values.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""DreamerV3's numerical pieces against hand-computed values."""
+"""The model-based agents' numerical pieces against hand-computed values."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.algorithms.dreamer_math import (
+from dva.algorithms.model_based_math import (
     categorical_cross_entropy,
     categorical_kl,
     kl_balance_losses,
