@@ -51,3 +51,8 @@ def small_off_policy_agent(algo: str, iterations: int, **overrides):
         previous = state
         state, metrics = iteration(state)
     return agent, previous, state, jax.device_get(metrics)
+
+
+def output_layer(params: dict) -> str:
+    """The name of a flax MLP's last Dense layer in ``params`` (``Dense_k`` with the largest k)."""
+    return max((name for name in params if name.startswith("Dense")), key=lambda name: int(name.split("_")[-1]))

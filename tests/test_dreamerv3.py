@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from fakes import output_layer
 
 from dva.algorithms import build_agent, make_config
 from dva.algorithms.dreamerv3 import clip_straight_through, sample_onehot
@@ -225,12 +226,9 @@ def test_the_backprop_actor_loss_is_the_normalised_advantage_with_the_continuati
     np.testing.assert_allclose(new_scale, expected_scale, rtol=1e-4)
     np.testing.assert_allclose(loss, -np.mean(expected_weight * advantage), rtol=1e-4, atol=1e-6)
 
-    output_layer = max(
-        (name for name in model["cont"]["params"] if name.startswith("Dense")),
-        key=lambda name: int(name.split("_")[-1]),
-    )
+    last = output_layer(model["cont"]["params"])
     sharper = jax.tree.map(lambda x: x, model)
-    sharper["cont"]["params"][output_layer] = jax.tree.map(lambda x: 2.0 * x, model["cont"]["params"][output_layer])
+    sharper["cont"]["params"][last] = jax.tree.map(lambda x: 2.0 * x, model["cont"]["params"][last])
     _, sharper_grad = imagined_actor_loss(actor, sharper)
     for before, after in zip(jax.tree.leaves(actor_grad), jax.tree.leaves(sharper_grad)):
         np.testing.assert_allclose(before, after, rtol=1e-5, atol=1e-8)

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fakes import output_layer
 
 from dva.algorithms import build_agent, make_config
 from dva.algorithms.model_based_math import twohot, twohot_decode
@@ -234,10 +235,17 @@ def test_the_policy_update_trains_only_the_prior_and_the_model_update_not_the_pr
     assert all(float(jnp.abs(g).max()) == 0.0 for g in jax.tree.leaves(gradient))
 
 
+def test_the_planner_refits_twice_more_for_twenty_or_more_actions():
+    """The reference's rule for large action spaces: the Humanoid's 21 actions get two more MPPI
+    refits than configured, Cart-pole's one does not."""
+    assert small_agent().mppi_iterations == TINY["mppi_iterations"]
+    assert small_agent(task="humanoid").mppi_iterations == TINY["mppi_iterations"] + 2
+
+
 def controlled_policy(agent: TDMPC2, mean: float, raw_log_std: float) -> dict:
     """Policy-prior parameters whose output is the constant ``(mean, raw_log_std)`` per action."""
     params = agent.policy_net.init(jax.random.PRNGKey(0), jnp.zeros((1, agent.latent_dim)))
-    last = max((name for name in params["params"] if name.startswith("Dense")), key=lambda n: int(n.split("_")[1]))
+    last = output_layer(params["params"])
     action_dim = agent.task.action_dim
     bias = jnp.concatenate([jnp.full(action_dim, mean), jnp.full(action_dim, raw_log_std)])
     params["params"][last] = {"kernel": jnp.zeros_like(params["params"][last]["kernel"]), "bias": bias}
@@ -305,7 +313,7 @@ def test_the_policy_loss_rewards_q_over_its_scale_and_entropy_and_updates_the_sc
     np.testing.assert_allclose(loss, expected, rtol=1e-4)
     raised = jax.tree.map(lambda x: x, q_params)  # every member's output bias + 1: Q rises by ≈ 1
     higher = lambda p: agent.policy_loss(state.params["policy"], p, zs, reached, old_scale, key)[0]
-    last = max((n for n in raised["params"] if n.startswith("Dense")), key=lambda n: int(n.split("_")[1]))
+    last = output_layer(raised["params"])
     bins = np.asarray(agent.bins)
     shift = np.zeros(len(bins), np.float32)
     shift[-1] = 50.0  # all probability on the top bin: Q at its largest
