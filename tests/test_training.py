@@ -63,6 +63,23 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert compiled(agent).iteration._cache_size() == 1
 
 
+def test_a_resumes_set_up_and_compilation_are_off_the_clock(tmp_path, monkeypatch):
+    """A resumed curve continues from its checkpoint's wall-clock: with the resume's set-up made
+    to take 2 s, its first row is well under that after the checkpoint's."""
+    run_dir = tmp_path / "run"
+    train("cartpole_swingup", "shac", iterations=2, run_dir=run_dir, eval_every=None, checkpoint_every=2, **SMALL)
+    slow_start = training.starting_state
+
+    def starting_state(*args):
+        time.sleep(2.0)
+        return slow_start(*args)
+
+    monkeypatch.setattr(training, "starting_state", starting_state)
+    train("cartpole_swingup", iterations=1, run_dir=run_dir, resume=True, eval_every=None)
+    times = [float(r["wall_time"]) for r in rows(run_dir)]
+    assert len(times) == 4 and 0 < times[3] - times[2] < 1.0, times
+
+
 def test_evaluations_are_kept_off_the_runs_clock(tmp_path, monkeypatch):
     """The logged wall-clock (and so the ``minutes`` budget) counts set-up, compilation and
     training, not evaluating: with every evaluation made to take 1.5 s, consecutive rows of a
@@ -129,6 +146,7 @@ def test_cpu_preset_gives_pixel_actors_a_longer_decay():
     # Cart-pole: the state actor's 1000, the pixel actor's decay spanning the 15-minute main job
     assert make_config("cartpole_swingup", "shac", "cpu").lr_decay_iterations == 1000
     assert make_config("cartpole_swingup", "dva", "cpu").lr_decay_iterations == 4500
+    assert make_config("humanoid", "dva", "cpu").lr_decay_iterations == 14000  # over its 8-hour run
     assert make_config("hopper", "dva", "paper").lr_decay_iterations == 30000
     assert make_config("hopper", "dva", "cpu", lr_decay_iterations=50).lr_decay_iterations == 50
 

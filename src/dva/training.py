@@ -247,7 +247,8 @@ def train(
     ``iterations``, or ``minutes`` (the whole call, set-up and compilation included, and what the
     agent builds on — DAgger's teacher —, evaluations excluded; so does the logged wall-clock, a
     fair clock for comparing methods whatever their tasks' evaluations cost; on ``resume``,
-    minutes more), or else the agent's ``default_iterations``. Evaluates at iteration 0, every
+    minutes more, counted from the first iteration: a resume's set-up and compilation are off the
+    clock), or else the agent's ``default_iterations``. Evaluates at iteration 0, every
     ``eval_every`` iterations, after any iteration that ends ``eval_minutes`` or more after the
     last evaluation (the same resolution in wall-clock for fast and slow iterations: what a
     time-to-threshold comparison needs) and at the end (never when both are None). Checkpoints every
@@ -277,6 +278,9 @@ def train(
         tracker.start(run_dir, spec.to_dict())
     log = ProgressLog(run_dir, csv_fields(agent), tracker)
     state = starting_state(agent, spec, mesh, checkpoints.manager, log, resume)
+    if resume:  # the curve continues from the checkpoint: set-up and compiling are not training
+        compiled(agent).iteration.lower(state).compile()
+        clock.exclude(clock.seconds())
     # Where the curve starts: the end of the last run, or the cost of what the agent builds on
     # (DAgger's teacher), so that comparisons count it.
     curve = CurveOrigin.of(agent, log)
