@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dva.analysis.bench import machine_description, markdown_table
+from dva.runner.training import load_run
 from dva.tasks.physics import mechanical_energy
-from dva.training import load_run
 
 
 def audit(run_dir: Path, num_envs: int, steps: int) -> list:

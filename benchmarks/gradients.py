@@ -79,7 +79,7 @@ def gradient_norms(
 
 def trained_policy(run_dir: Path) -> tuple[str, str, Callable[[jax.Array], jax.Array]]:
     """(task, physics, deterministic policy) of a state-observation run's latest checkpoint."""
-    from dva.training import load_run
+    from dva.runner.training import load_run
 
     spec, agent, state = load_run(run_dir)
     if agent.config.observation != "state":

@@ -4,7 +4,7 @@
     python benchmarks/random_returns.py [--tasks cartpole_swingup hopper] [--episodes 64] [--csv random.csv]
 
 Uniform random actions in [−1, 1], one full episode per env from a fresh reset, exactly as a
-trained policy is evaluated (:func:`dva.evaluation.random_policy_returns`).
+trained policy is evaluated (:func:`dva.runner.evaluation.random_policy_returns`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 
 import dva
 from dva.analysis.bench import write_csv
-from dva.evaluation import random_policy_returns
+from dva.runner.evaluation import random_policy_returns
 from dva.tasks import TASKS, make_task
 
 

@@ -45,7 +45,7 @@ def measure(name: str, physics: str, num_envs: int, render: bool) -> dict[str, f
     compile_bwd, fwd_bwd, _ = timed(backward, actions, state)
     render_time = float("nan")
     if render:
-        from dva.rendering import PixelRenderer
+        from dva.envs.rendering import PixelRenderer
 
         renderer = PixelRenderer(task, num_envs)
         _, render_time, _ = timed(jax.jit(renderer.__call__), state.data.qpos)

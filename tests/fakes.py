@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from dva.algorithms import ALGORITHMS, make_config
-from dva.envs import PixelObservations
+from dva.envs.observations import PixelObservations
 from dva.tasks import make_task
 
 

@@ -8,8 +8,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from dva import training
 from dva.cli import main
+from dva.runner import training
 
 
 def test_tasks_lists_every_task_with_sizes(capsys):
@@ -227,13 +227,13 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
 
 
 def test_diverged_training_exits_with_a_message(tmp_path, monkeypatch, capsys):
-    import dva.training
-    from dva.training import TrainingDiverged
+    import dva.runner.training
+    from dva.runner.training import TrainingDiverged
 
     def diverge(*args, **kwargs):
         raise TrainingDiverged("actor gradient norm 5e+09 is NaN or above 1e+08 at iteration 59", 59, {})
 
-    monkeypatch.setattr(dva.training, "train", diverge)
+    monkeypatch.setattr(dva.runner.training, "train", diverge)
     with pytest.raises(SystemExit) as exit_info:
         main(["train", "--task", "cartpole_swingup", "--run-dir", str(tmp_path / "run")])
     assert exit_info.value.code == 3

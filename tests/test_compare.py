@@ -14,13 +14,13 @@ import time
 import pytest
 
 import dva.analysis.compare as compare_module
-import dva.training
+import dva.runner.training
 from dva.analysis.compare import Job, cpu_groups, figure_settings, grid_settings, launch_pinned, run_parallel
 from dva.cli import main
 
 
 class FakeTraining:
-    """Stands in for ``dva.training.train`` and ``checkpoint_manager``: logs one evaluation per
+    """Stands in for ``dva.runner.training.train`` and ``checkpoint_manager``: logs one evaluation per
     simulated minute and leaves a checkpoint marker."""
 
     def __init__(self) -> None:
@@ -57,8 +57,8 @@ class FakeTraining:
 @pytest.fixture
 def fake(monkeypatch):
     fake = FakeTraining()
-    monkeypatch.setattr(dva.training, "train", fake.train)
-    monkeypatch.setattr(dva.training, "checkpoint_manager", fake.checkpoint_manager)
+    monkeypatch.setattr(dva.runner.training, "train", fake.train)
+    monkeypatch.setattr(dva.runner.training, "checkpoint_manager", fake.checkpoint_manager)
     return fake
 
 
@@ -266,7 +266,7 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
     import ray
 
     from dva.analysis.compare import run_settings
-    from dva.training import read_progress, train
+    from dva.runner.training import read_progress, train
 
     small = ["num_envs=4", "horizon=8", "critic_minibatches=2", "actor_hidden=[16]", "critic_hidden=[16]"]
     grid = ["actor_lr=1e-3,2e-3", *small]

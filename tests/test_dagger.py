@@ -11,7 +11,7 @@ from fakes import StripeRenderer
 
 from dva.algorithms import make_config
 from dva.algorithms.dagger import DAgger
-from dva.envs import PixelObservations
+from dva.envs.observations import PixelObservations
 from dva.tasks import make_task
 
 NUM_ENVS, HORIZON = 4, 6

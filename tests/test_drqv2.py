@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from fakes import small_off_policy_agent
 
-from dva.augmentation import shift_images
-from dva.rendering import push_frame, reset_frame_stack
-from dva.replay import FrameReplay, Step, stack_at
+from dva.algorithms.augmentation import shift_images
+from dva.algorithms.replay import FrameReplay, Step, stack_at
+from dva.envs.rendering import push_frame, reset_frame_stack
 
 
 def test_shift_images_is_pixel_exact():

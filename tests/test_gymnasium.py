@@ -13,8 +13,8 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import dva  # noqa: F401  (registers dva/<task>-v0)
-from dva.gymnasium_envs import DvaEnv, DvaVectorEnv, env_id
-from dva.task_registry import TASK_CLASSES
+from dva.envs.gymnasium import DvaEnv, DvaVectorEnv, env_id
+from dva.envs.registry import TASK_CLASSES
 from dva.tasks import TASKS
 
 NUM_ENVS = 2
@@ -51,7 +51,7 @@ def test_every_task_is_registered_with_a_vector_entry_point():
     assert tuple(TASK_CLASSES) == tuple(TASKS)
     for task in TASKS:
         spec = gymnasium.spec(env_id(task))
-        assert spec.vector_entry_point == "dva.gymnasium_envs:DvaVectorEnv"
+        assert spec.vector_entry_point == "dva.envs.gymnasium:DvaVectorEnv"
         assert spec.kwargs == {"task": task}
 
 

@@ -12,9 +12,9 @@ import jax
 import numpy as np
 import pytest
 
-from dva.evaluation import random_policy_returns
+from dva.runner.evaluation import random_policy_returns
+from dva.runner.training import train
 from dva.tasks import make_task
-from dva.training import train
 
 pytestmark = pytest.mark.slow
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4, conv_valid
-from dva.runtime import CPU_FLAGS, YNN_FUSION_FLAG, configure_xla
+from dva.runner.runtime import CPU_FLAGS, YNN_FUSION_FLAG, configure_xla
 
 
 class FlaxPixelEncoder(nn.Module):
@@ -70,7 +70,7 @@ def test_conv_valid_gradients_match_xla_at_top_level_and_inside_a_scan(stride, i
 
 
 def test_runtime_turns_off_ynnpack_convolutions_unless_the_user_chose(monkeypatch):
-    """XLA's CPU convolutions are fast only with YNNPACK's fusions off (dva.runtime); a user's own
+    """XLA's CPU convolutions are fast only with YNNPACK's fusions off (dva.runner.runtime); a user's own
     XLA_FLAGS are kept, and their own YNN setting wins."""
     assert YNN_FUSION_FLAG in os.environ["XLA_FLAGS"]  # importing dva set it here
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")

@@ -1,4 +1,4 @@
-"""Adding a task is its module and one line in dva.task_registry: the command line, presets,
+"""Adding a task is its module and one line in dva.envs.registry: the command line, presets,
 Gymnasium and the training loop take it from there. (Its own file: it reloads dva.tasks.)"""
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ def test_a_new_task_is_one_module_and_one_registry_line(tmp_path, monkeypatch):
     import dva
     import dva.tasks
     from dva.algorithms import make_config
-    from dva.task_registry import TASK_CLASSES
-    from dva.training import train
+    from dva.envs.registry import TASK_CLASSES
+    from dva.runner.training import train
 
     (tmp_path / "toy_task.py").write_text(TOY_MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))

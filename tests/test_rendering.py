@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.rendering import PixelRenderer, push_frame, reset_frame_stack
+from dva.envs.rendering import PixelRenderer, push_frame, reset_frame_stack
 from dva.tasks import make_task
 
 

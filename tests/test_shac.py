@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms.shac import SHAC, SHACConfig, clip_gradient_per_env, td_lambda_targets
-from dva.envs import PixelObservations
+from dva.envs.observations import PixelObservations
 from dva.tasks import make_task
 
 HORIZON, NUM_ENVS = 6, 2
@@ -245,8 +245,8 @@ def test_init_log_std_sets_the_exploration_noise_of_the_taken_actions(setup):
 def test_pixel_gradient_flows_for_visual_shac_and_is_cut_for_dva():
     """Through pixels: the second action depends on the first state only via the rendered frame
     (and the physics in between); visual SHAC differentiates that path, D.Va cuts it exactly."""
-    from dva.rendering import PixelRenderer
-    from dva.soft_rendering import SoftRenderer
+    from dva.envs.rendering import PixelRenderer
+    from dva.envs.soft_rendering import SoftRenderer
 
     task = make_task("cartpole_swingup")
     noise = jax.random.normal(jax.random.PRNGKey(1), (3, NUM_ENVS, 1))
@@ -288,7 +288,7 @@ def test_state_prediction_adds_its_weighted_mean_squared_error_to_the_actor_grad
     """D.Va's auxiliary loss: the actor's gradient is reverse mode through the decoupled rollout
     plus ``weight ·`` the gradient of the encoder's mean squared error on the normalised states it
     saw, and the reported loss is that error (kept backward passes and recomputed chunks alike)."""
-    from dva.rendering import PixelRenderer
+    from dva.envs.rendering import PixelRenderer
 
     task, weight = make_task("cartpole_swingup"), 0.7
     config = SHACConfig(

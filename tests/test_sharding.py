@@ -13,24 +13,24 @@ import textwrap
 import pytest
 
 from dva.algorithms import make_config
-from dva.sharding import device_mesh
-from dva.training import RunSpec, run_mesh
+from dva.runner.sharding import device_mesh
+from dva.runner.training import RunSpec, run_mesh
 
 TWO_DEVICES = textwrap.dedent(
     """
     import json, sys
     import dva, jax, numpy as np
     from dva.algorithms import build_agent, make_config
-    from dva.sharding import device_mesh, place
-    from dva.training import train
+    from dva.runner.sharding import device_mesh, place
+    from dva.runner.training import train
 
     SMALL = dict(num_envs=4, horizon=4, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
     flat = lambda tree: np.concatenate([np.ravel(x) for x in jax.tree.leaves(tree)])
     part, out = sys.argv[1], {"devices": len(jax.devices())}
     mesh = device_mesh(2, 4)
     if part == "state":  # and Warp's renderer split over the devices
-        from dva.rendering import PixelRenderer
-        from dva.sharding import SplitRenderer
+        from dva.envs.rendering import PixelRenderer
+        from dva.runner.sharding import SplitRenderer
         from dva.tasks import make_task
 
         task = make_task("cartpole_swingup")

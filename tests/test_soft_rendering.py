@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.rendering import PixelRenderer
-from dva.soft_rendering import SoftRenderer
+from dva.envs.rendering import PixelRenderer
+from dva.envs.soft_rendering import SoftRenderer
+from dva.envs.visualize import random_rollout
 from dva.tasks import TASKS, make_task
-from dva.visualize import random_rollout
 
 NUM_ENVS = 2
 

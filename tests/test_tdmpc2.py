@@ -15,12 +15,12 @@ from fakes import output_layer
 
 from dva.algorithms import build_agent, make_config
 from dva.algorithms.model_based_math import twohot, twohot_decode
+from dva.algorithms.replay import Step
 from dva.algorithms.tdmpc2 import TDMPC2, discount_for
-from dva.envs import PixelObservations
+from dva.envs.observations import PixelObservations
 from dva.networks.tdmpc2 import simnorm
-from dva.replay import Step
+from dva.runner.training import load_run, train
 from dva.tasks import make_task
-from dva.training import load_run, train
 
 # 48² frames through 4-channel convolutions: a 2·2·4 = 16-entry latent; 2 envs, no action repeat.
 TINY = dict(

@@ -13,9 +13,9 @@ import jax
 import numpy as np
 import pytest
 
-from dva import training
 from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
-from dva.training import TrainingDiverged, build, checkpoint_manager, compiled, initial_state, load_run, train
+from dva.runner import training
+from dva.runner.training import TrainingDiverged, build, checkpoint_manager, compiled, initial_state, load_run, train
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
 
@@ -94,7 +94,7 @@ def test_evaluations_are_kept_off_the_runs_clock(tmp_path, monkeypatch):
 
         return functions._replace(evaluate=evaluate)
 
-    monkeypatch.setattr("dva.training.compiled", slow_evaluations)
+    monkeypatch.setattr("dva.runner.training.compiled", slow_evaluations)
     run_dir = tmp_path / "run"
     train("cartpole_swingup", "shac", preset="cpu", iterations=3, run_dir=run_dir, eval_every=1, **SMALL)
     logged = rows(run_dir)
@@ -303,7 +303,7 @@ def test_track_logs_config_curve_and_video_to_wandb_offline(tmp_path, monkeypatc
     env-step count and the policy video; a resumed run reopens the same W&B run."""
     import imageio
 
-    from dva.tracking import WandbTracker
+    from dva.runner.tracking import WandbTracker
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     monkeypatch.setenv("WANDB_SILENT", "true")

@@ -5,8 +5,8 @@ Gymnasium finds env packages). :func:`configure` sets what fast runs need; the `
 its worker processes, the benchmarks and the examples call it first.
 """
 
-from dva.gymnasium_envs import register_envs
-from dva.runtime import configure
+from dva.envs.gymnasium import register_envs
+from dva.runner.runtime import configure
 
 register_envs()  # gymnasium.make_vec("dva/<task>-v0", ...)
 

@@ -13,12 +13,13 @@ from typing import Annotated, Any, Optional, Union
 import tyro
 
 from dva.algorithms import ALGORITHMS, AlgoName
+from dva.analysis.commands import ANALYSES
 from dva.analysis.compare import Backend, FigureName
 from dva.configs import PresetName
 from dva.errors import DvaUsageError
-from dva.runtime import configure
+from dva.runner.runtime import configure
+from dva.runner.training import TrainingDiverged, check_budget
 from dva.tasks import TASKS, check_physics, check_task_name
-from dva.training import TrainingDiverged, check_budget
 
 
 @dataclasses.dataclass
@@ -62,9 +63,9 @@ class RenderCommand:
         import jax
         import numpy as np
 
-        from dva.rendering import PixelRenderer
+        from dva.envs.rendering import PixelRenderer
+        from dva.envs.visualize import image_grid, random_rollout, render_trajectory, save_png, write_video
         from dva.tasks import make_task
-        from dva.visualize import image_grid, random_rollout, render_trajectory, save_png, write_video
 
         task = make_task(self.task)
         observations = PixelRenderer(task, self.num_envs, self.image_size)
@@ -162,7 +163,7 @@ class TrainOptions:
         return overrides
 
     def run(self) -> None:
-        from dva.training import train
+        from dva.runner.training import train
 
         if self.run_dir is None:
             if self.resume:
@@ -170,7 +171,7 @@ class TrainOptions:
             self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
         tracker = None
         if self.track:
-            from dva.tracking import WandbTracker
+            from dva.runner.tracking import WandbTracker
 
             tracker = WandbTracker(self.wandb_project)
         run_dir = train(
@@ -237,10 +238,10 @@ class EvalCommand:
         import jax
         import numpy as np
 
-        from dva.evaluation import random_policy_returns
+        from dva.envs.visualize import policy_video
+        from dva.runner.evaluation import random_policy_returns
+        from dva.runner.training import evaluate_run
         from dva.tasks import make_task
-        from dva.training import evaluate_run
-        from dva.visualize import policy_video
 
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
         task = make_task(spec.task, spec.physics)
@@ -392,140 +393,6 @@ class SweepCommand(ManyRuns):
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 
-@dataclasses.dataclass
-class SizeOverrides:
-    """Options shared by the analyses that build trainers: the preset's sizes, overridden."""
-
-    seed: int = 0
-    out: Path = Path("analysis")
-    num_envs: int | None = None
-    """Override the preset's number of parallel envs."""
-    horizon: int | None = None
-    """Override the preset's short horizon h."""
-    image_size: int | None = None
-    """Override the preset's image side (pixels)."""
-
-    def overrides(self) -> dict[str, int | None]:
-        return {"num_envs": self.num_envs, "horizon": self.horizon, "image_size": self.image_size}
-
-
-def print_report(paths: list[Path], markdown: str = "") -> None:
-    """An analysis's table, then the files it wrote."""
-    if markdown:
-        print(markdown)
-    for path in paths:
-        print(f"wrote {path}")
-
-
-@dataclasses.dataclass
-class GradientsAnalysis:
-    """Paper Fig 3: along a SHAC run with state observations, cosine similarity and norms of the
-    full gradient (APG) vs the decoupled one (DPG) at the same parameters. Writes
-    OUT/gradients_TASK/apg_vs_dpg.{csv,png}."""
-
-    task: str = "cartpole_swingup"
-    """The paper uses hopper (use --iterations 200: our SHAC on Hopper diverges after ~220)."""
-    iterations: int = 300
-    """SHAC iterations to train (CPU preset)."""
-    every: int = 10
-    """Compare the two gradients every this many iterations."""
-    seed: int = 0
-    out: Path = Path("analysis")
-    num_envs: int | None = None
-    horizon: int | None = None
-
-    def run(self) -> None:
-        from dva.analysis.gradients import compare_gradients, write_gradient_report
-
-        rows = compare_gradients(
-            self.task, self.iterations, self.every, self.seed, num_envs=self.num_envs, horizon=self.horizon
-        )
-        title = f"SHAC on {self.task} (state observations, seed {self.seed}): APG vs DPG"
-        print_report(write_gradient_report(rows, self.out / f"gradients_{self.task}", title))
-
-
-@dataclasses.dataclass
-class GradnormAnalysis(SizeOverrides):
-    """Paper Fig 9: actor gradient norm over training, D.Va vs visual SHAC, per task (CPU preset
-    unless overridden). Writes OUT/gradnorm/gradnorm.{csv,png,md} and the runs under it."""
-
-    tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup", "hopper", "ant"])
-    iterations: int = 100
-
-    def run(self) -> None:
-        from dva.analysis.gradnorm import gradient_norms, write_gradnorm_report
-
-        out = self.out / "gradnorm"
-        rows, summary = gradient_norms(self.tasks, self.iterations, out, self.seed, **self.overrides())
-        print_report(*write_gradnorm_report(rows, summary, out, f"actor gradient norm, seed {self.seed}"))
-
-
-@dataclasses.dataclass
-class CostAnalysis:
-    """Paper Fig 10 and Table 1: backward time and peak memory of one actor gradient, D.Va vs
-    visual SHAC, same envs/horizon/images on every task, printed as ratios. Writes
-    OUT/cost/cost.{csv,png,md} and cost_ratios.csv."""
-
-    tasks: list[str] = dataclasses.field(default_factory=lambda: list(TASKS))
-    num_envs: int = 32
-    horizon: int = 32
-    image_size: int = 84
-    chunk: int = 1
-    """D.Va's actor backward in chunks of this many steps (``--shac.actor-backward-chunk``; 1, the
-    default, has the least memory)."""
-    kept: bool = False
-    """Also measure D.Va reusing the backward passes its rollout kept (chunk 0: no recomputed
-    forward, every step's activations in memory)."""
-    timing: bool = True
-    """Time the forward and backward passes; --no-timing: memory only, from compiling."""
-    seed: int = 0
-    out: Path = Path("analysis")
-
-    def run(self) -> None:
-        from dva.analysis.bench import machine_description
-        from dva.analysis.cost import measure_costs, write_cost_report
-        from dva.rendering import check_image_size
-
-        check_image_size(self.image_size, self.image_size)  # fail before any compile
-        rows = measure_costs(
-            self.tasks, self.num_envs, self.horizon, self.image_size, self.seed, self.chunk, self.kept, self.timing
-        )
-        title = (
-            f"one actor gradient, {self.num_envs} envs × {self.horizon} steps, {self.image_size}² pixels; "
-            f"{machine_description()}"
-        )
-        print_report(*write_cost_report(rows, self.out / "cost", title))
-
-
-@dataclasses.dataclass
-class BreakdownAnalysis(SizeOverrides):
-    """Paper Fig 5: D.Va's time per 1M env steps split into simulation (forward, backward),
-    rendering, actor forward/backward and critic fitting. Writes OUT/breakdown_TASK/breakdown.{csv,png,md}."""
-
-    task: str = "ant"
-    preset: str = "cpu"
-    """paper (the paper's hyperparameters) | cpu"""
-    algo: str = "dva"
-
-    def run(self) -> None:
-        from dva.analysis.bench import machine_description
-        from dva.analysis.breakdown import measure_iteration, write_breakdown_report
-
-        config, times = measure_iteration(self.task, self.algo, self.preset, self.seed, **self.overrides())
-        title = (
-            f"{self.algo} on {self.task}: {config.num_envs} envs × {config.horizon} steps"
-            + (f", {config.image_size}² pixels" if config.observation == "pixels" else "")
-            + f"; {machine_description()}"
-        )
-        print_report(*write_breakdown_report(config, times, self.out / f"breakdown_{self.task}", title))
-
-
-ANALYSES = {
-    "gradients": GradientsAnalysis,
-    "gradnorm": GradnormAnalysis,
-    "cost": CostAnalysis,
-    "breakdown": BreakdownAnalysis,
-}
 AnalyzeCommand = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in ANALYSES.items())]
 # A Union has no docstring of its own: without this, ``dva --help`` would print typing.Union's.
 ANALYZE_HELP = "The analyses behind the method (gradients, gradnorm, cost, breakdown), each writing a PNG and a table."

@@ -31,7 +31,7 @@ from dva.configs import (
     shac_preset,
     tdmpc2_preset,
 )
-from dva.envs import PixelObservations, Renderer
+from dva.envs.observations import PixelObservations, Renderer
 from dva.errors import DvaUsageError
 from dva.tasks import check_task_name, make_task
 
@@ -240,14 +240,14 @@ def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int, mesh
     if kind is None:
         return None
     if kind == "warp":
-        from dva.rendering import PixelRenderer
+        from dva.envs.rendering import PixelRenderer
 
         if mesh is not None and mesh.size > 1:
-            from dva.sharding import SplitRenderer
+            from dva.runner.sharding import SplitRenderer
 
             return SplitRenderer(lambda n, device: PixelRenderer(task, n, image_size, device=device), num_envs, mesh)
         return PixelRenderer(task, num_envs, image_size)
-    from dva.soft_rendering import SoftRenderer
+    from dva.envs.soft_rendering import SoftRenderer
 
     return SoftRenderer(task, num_envs, image_size)
 
@@ -258,7 +258,7 @@ def build_agent(
     """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
     as long as the agent) and the agent; ``mesh``: the devices its environments split over;
     ``teacher``: the run it learns from, for an algorithm with a ``teacher_algo``
-    (:func:`dva.training.load_teacher` loads one)."""
+    (:func:`dva.runner.training.load_teacher` loads one)."""
     entry = check_algo(algo)
     if (entry.teacher_algo is None) != (teacher is None):
         needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"

@@ -1,4 +1,4 @@
-"""The protocol every algorithm implements, so that one training loop (:func:`dva.training.train`)
+"""The protocol every algorithm implements, so that one training loop (:func:`dva.runner.training.train`)
 serves them all: budget, progress bar, logs, evaluation, checkpoints, resume, divergence guard."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 import jax
 
-from dva.envs import Observation, PixelObservations
+from dva.envs.observations import Observation, PixelObservations
 
 State = TypeVar("State")  # a pytree holding everything an iteration reads and writes
 
@@ -28,7 +28,7 @@ class Agent(Protocol[State]):
     metric_names: tuple[str, ...]
     prior_cost: tuple[float, int]  # (seconds, env steps) spent before it started (DAgger's teacher)
     # The state's fields that hold the environment batch (leading num_envs axis), which a run on
-    # several devices splits over them (dva.sharding); () if the agent does not split.
+    # several devices splits over them (dva.runner.sharding); () if the agent does not split.
     batch_fields: tuple[str, ...]
 
     @property

@@ -30,7 +30,7 @@ import optax
 from flax import struct
 
 from dva.algorithms.base import TeacherRun
-from dva.envs import Observation, PixelObservations
+from dva.envs.observations import Observation, PixelObservations
 from dva.errors import DvaUsageError
 from dva.networks import Actor
 from dva.tasks import EnvState

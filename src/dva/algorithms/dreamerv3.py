@@ -58,10 +58,10 @@ from dva.algorithms.model_based_math import (
     update_return_scale,
 )
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
-from dva.envs import Observation, PixelObservations
+from dva.algorithms.replay import SequenceReplay, Step
+from dva.envs.observations import Observation, PixelObservations
 from dva.errors import DvaUsageError
 from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, MLPEncoder, scale_pixels
-from dva.replay import SequenceReplay, Step
 from dva.tasks import EnvState
 
 

@@ -21,11 +21,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.algorithms.augmentation import random_shift
 from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig
-from dva.augmentation import random_shift
-from dva.envs import Observation, PixelObservations
+from dva.algorithms.replay import NStepBatch
+from dva.envs.observations import Observation, PixelObservations
 from dva.networks import DeterministicActor, TwinQ
-from dva.replay import NStepBatch
 
 
 @dataclasses.dataclass(frozen=True)

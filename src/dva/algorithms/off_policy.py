@@ -19,10 +19,10 @@ import optax
 from flax import struct
 
 from dva.algorithms.base import nan_loss_reason
-from dva.envs import PixelObservations
+from dva.algorithms.replay import FrameReplay, NStepBatch, SequenceReplay, Step
+from dva.envs.observations import PixelObservations
 from dva.errors import DvaUsageError
 from dva.networks import PixelEncoder
-from dva.replay import FrameReplay, NStepBatch, SequenceReplay, Step
 from dva.tasks import EnvState
 
 

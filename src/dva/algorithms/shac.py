@@ -4,10 +4,10 @@
 * **SHAC**: ``observation="state"``, ``gradient="full"``,
 * **DPG on state** (paper Fig 13): ``observation="state"``, ``gradient="decoupled"``,
 * **visual SHAC** (the paper's baseline): ``observation="pixels"``, ``gradient="full"``, pixels
-  from the differentiable :class:`~dva.soft_rendering.SoftRenderer`.
+  from the differentiable :class:`~dva.envs.soft_rendering.SoftRenderer`.
 
 One :meth:`SHAC.iteration` (jit it) rolls the policy out for ``horizon`` steps over ``num_envs``
-environments (physics, and the rendering and frame stack of :class:`~dva.envs.PixelObservations`),
+environments (physics, and the rendering and frame stack of :class:`~dva.envs.observations.PixelObservations`),
 differentiates the actor loss
 ``L = −1/(N h) Σ [Σ_t γ^t r_t + γ^h V'(s_h)]`` through the dynamics, fits the critic to TD-λ
 targets for ``critic_iterations × critic_minibatches`` steps and updates the target critic.
@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.envs import Observation, PixelObservations
+from dva.envs.observations import Observation, PixelObservations
 from dva.errors import DvaUsageError
 from dva.networks import Actor, Critic, RunningStats
 from dva.tasks import EnvState

@@ -56,14 +56,14 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from dva.algorithms.augmentation import random_shift
 from dva.algorithms.base import nan_loss_reason
 from dva.algorithms.model_based_math import categorical_cross_entropy, symlog_bins, twohot, twohot_decode
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
-from dva.augmentation import random_shift
-from dva.envs import Observation, PixelObservations
+from dva.algorithms.replay import SequenceReplay, Step, stack_at
+from dva.envs.observations import Observation, PixelObservations
 from dva.errors import DvaUsageError
 from dva.networks.tdmpc2 import NormedMLP, QEnsemble, TDMPC2PixelEncoder, concat_action, pixel_latent_dim
-from dva.replay import SequenceReplay, Step, stack_at
 from dva.tasks import EnvState
 
 

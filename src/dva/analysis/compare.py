@@ -113,7 +113,7 @@ def is_complete(run_dir: Path, minutes: float) -> bool:
 
 def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path) -> str:
     """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
-    from dva.training import checkpoint_manager, read_progress, train
+    from dva.runner.training import checkpoint_manager, read_progress, train
 
     if is_complete(run_dir, minutes):
         return "skipped (complete)"
@@ -365,7 +365,7 @@ def _values(text: str) -> list:
 
 
 if __name__ == "__main__":  # one run of a comparison in a child process (see launch_pinned)
-    from dva.runtime import configure
+    from dva.runner.runtime import configure
 
     configure()
     print(Job.from_json(sys.argv[1]).run())

@@ -17,7 +17,7 @@ from matplotlib.figure import Figure  # no pyplot: no global state, no display n
 from dva.analysis.bench import markdown_table, write_csv
 from dva.analysis.cost import COMPARED
 from dva.analysis.plots import read_curve
-from dva.training import TrainingDiverged, train
+from dva.runner.training import TrainingDiverged, train
 
 
 def gradient_norms(

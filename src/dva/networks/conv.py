@@ -17,7 +17,7 @@ CONV_DIMENSIONS = ("NHWC", "HWIO", "NHWC")
 def conv_valid(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     """A VALID, NHWC × HWIO convolution: XLA's own forward, its gradients as NHWC × HWIO
     convolutions too. On the CPU XLA's forward runs at ≈ 110 GFLOP/s only with YNNPACK's fusions
-    off, which :mod:`dva.runtime` sees to (≈ 18 with them on). XLA's own gradients use other
+    off, which :mod:`dva.runner.runtime` sees to (≈ 18 with them on). XLA's own gradients use other
     dimension orders, which its CPU backend runs 20× (input) to 185× (kernel) slower inside a
     loop body — a ``lax.scan`` over chunks, a reverse scan through the rollout, a scan of updates
     — than at the top level (jax-ml/jax#12868); written as NHWC × HWIO forward convolutions they

@@ -5,8 +5,8 @@ from __future__ import annotations
 import functools
 import importlib
 
+from dva.envs.registry import TASK_CLASSES
 from dva.errors import DvaUsageError
-from dva.task_registry import TASK_CLASSES
 from dva.tasks.base import CONTROL_DT, EnvState, Task
 from dva.tasks.physics import PHYSICS, check_physics
 
@@ -17,7 +17,7 @@ def task_class(path: str) -> type[Task]:
     return getattr(importlib.import_module(module), name)
 
 
-# Filled from dva.task_registry (one line per task), in its order.
+# Filled from dva.envs.registry (one line per task), in its order.
 TASKS: dict[str, type[Task]] = {name: task_class(path) for name, path in TASK_CLASSES.items()}
 
 

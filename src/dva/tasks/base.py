@@ -52,7 +52,7 @@ class EnvState(struct.PyTreeNode):
     step_count: jax.Array  # (N,) int32, steps taken in the current episode
     prev_action: jax.Array  # (N, action_dim) last action applied (part of some observations)
     key: jax.Array  # (N, 2) per-env random keys for resets
-    # (N, H, W, 3·k) stacked camera frames, kept up to date by dva.envs.PixelObservations (which
+    # (N, H, W, 3·k) stacked camera frames, kept up to date by dva.envs.observations.PixelObservations (which
     # sets it to an empty (N, 0) array when it renders nothing); None on a bare task's state.
     pixels: jax.Array | None = None
 

@@ -1,4 +1,4 @@
-"""A differentiable renderer: the scenes of :class:`~dva.rendering.PixelRenderer` as a pure JAX
+"""A differentiable renderer: the scenes of :class:`~dva.envs.rendering.PixelRenderer` as a pure JAX
 function of ``qpos``, so that gradients flow from pixels to joint positions (visual SHAC).
 
 Each pixel's camera ray is tested against every geom at once, as dense array algebra over
@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from dva.envs.rendering import MAX_DEPTH, SKY_COLOR, check_image_size, scene_poses
 from dva.errors import DvaUsageError
-from dva.rendering import MAX_DEPTH, SKY_COLOR, check_image_size, scene_poses
 from dva.tasks import Task
 
 CAPSULE, SPHERE, BOX, PLANE = (
@@ -40,7 +40,7 @@ class SoftRenderer:
 
     Returns float RGB in [0, 255] (float64 under ``jax.enable_x64``) (``(num_envs, height, width, 3)``): the
     pixel encoder takes it
-    like the uint8 frames of :class:`~dva.rendering.PixelRenderer`, with gradients attached.
+    like the uint8 frames of :class:`~dva.envs.rendering.PixelRenderer`, with gradients attached.
     ``softness`` is the silhouette width in pixels. The render is rematerialised in the backward
     pass (``jax.checkpoint``): a rollout keeps only poses per step, not per-pixel intermediates.
     """

@@ -4,8 +4,8 @@ Algorithms never call a renderer themselves. They step a :class:`PixelObservatio
 renders after every reset and step, keeps a stack of the last ``frame_stack`` frames in
 ``EnvState.pixels`` and hands out observations as ``{"state": …, "pixels": …}``. Any renderer
 with the :class:`Renderer` interface works: MuJoCo's Warp ray-tracer
-(:class:`~dva.rendering.PixelRenderer`, uint8, not differentiable) or the pure-JAX
-:class:`~dva.soft_rendering.SoftRenderer` (float, differentiable).
+(:class:`~dva.envs.rendering.PixelRenderer`, uint8, not differentiable) or the pure-JAX
+:class:`~dva.envs.soft_rendering.SoftRenderer` (float, differentiable).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import Protocol
 import jax
 import jax.numpy as jnp
 
+from dva.envs.rendering import push_frame, reset_frame_stack
 from dva.errors import DvaUsageError
-from dva.rendering import push_frame, reset_frame_stack
 from dva.tasks import EnvState, Task
 
 

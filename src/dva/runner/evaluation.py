@@ -10,7 +10,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from dva.envs import Observation, PixelObservations
+from dva.envs.observations import Observation, PixelObservations
 from dva.tasks import Task
 
 # (observation, memory, key) → (action in [−1, 1], memory): the memory is what a recurrent policy

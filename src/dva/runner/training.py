@@ -24,10 +24,10 @@ from tqdm import tqdm
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
 from dva.algorithms.base import Agent, RecurrentAgent, TeacherRun
 from dva.errors import DvaUsageError
-from dva.evaluation import evaluate_policy
-from dva.sharding import device_mesh, place
+from dva.runner.evaluation import evaluate_policy
+from dva.runner.sharding import device_mesh, place
+from dva.runner.tracking import WandbTracker
 from dva.tasks import make_task
-from dva.tracking import WandbTracker
 
 
 class TrainingDiverged(RuntimeError):
@@ -153,7 +153,7 @@ def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
 
 
 def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
-    """:func:`~dva.evaluation.evaluate_policy` with the agent's deterministic policy (its memory
+    """:func:`~dva.runner.evaluation.evaluate_policy` with the agent's deterministic policy (its memory
     carried from step to step where it is a :class:`~dva.algorithms.base.RecurrentAgent`)."""
     if isinstance(agent, RecurrentAgent):
         return evaluate_policy(
@@ -255,7 +255,7 @@ def train(
     ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
     the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint. ``devices``:
-    how many devices the environments split over (:mod:`dva.sharding`; None: all JAX sees, for
+    how many devices the environments split over (:mod:`dva.runner.sharding`; None: all JAX sees, for
     the algorithms that split). ``tracker``: also log to Weights & Biases (the caller finishes it).
     """
     clock = RunClock()

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dva.rendering import PixelRenderer
+from dva.envs.rendering import PixelRenderer
 from dva.tasks import CONTROL_DT, EnvState, Task
 
 

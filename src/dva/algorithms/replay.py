@@ -4,7 +4,7 @@ frame stacks for the off-policy pixel baselines (DrQ-v2, CURL).
 Built on ``flashbax``'s trajectory buffer (jittable, time-major per env, never samples unwritten
 slots). Each env step stores only the newest frame, not the whole stack — a third of the memory
 at 3 frames — and sampling rebuilds the stacks from the ``frame_stack − 1`` frames before, restarting
-the stack at an episode's first frame exactly as :class:`~dva.envs.PixelObservations` does.
+the stack at an episode's first frame exactly as :class:`~dva.envs.observations.PixelObservations` does.
 Sampled n-step returns stop at the end of an episode: after a termination the return does not
 bootstrap; a window that reaches a time-limit truncation is marked invalid (its next observation
 was replaced by the reset), so losses weight it 0.

@@ -36,8 +36,8 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
+from dva.envs.registry import TASK_CLASSES
 from dva.errors import DvaUsageError
-from dva.task_registry import TASK_CLASSES
 
 ObsType = Literal["state", "pixels", "both"]
 OBS_TYPES: tuple[str, ...] = ("state", "pixels", "both")
@@ -66,8 +66,8 @@ def register_envs() -> None:
         if env_id(task) not in gymnasium.registry:
             gymnasium.register(
                 id=env_id(task),
-                entry_point="dva.gymnasium_envs:DvaEnv",
-                vector_entry_point="dva.gymnasium_envs:DvaVectorEnv",
+                entry_point="dva.envs.gymnasium:DvaEnv",
+                vector_entry_point="dva.envs.gymnasium:DvaVectorEnv",
                 kwargs={"task": task},
                 disable_env_checker=True,  # the checker's NumPy probes would each compile a step
             )
@@ -99,8 +99,8 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
             raise DvaUsageError(f"array_type {array_type!r} is not allowed; use one of {', '.join(ARRAY_TYPES)}")
         if render_mode not in (None, "rgb_array"):
             raise DvaUsageError(f"render_mode {render_mode!r} is not allowed; use None or 'rgb_array'")
-        from dva.envs import PixelObservations
-        from dva.rendering import PixelRenderer
+        from dva.envs.observations import PixelObservations
+        from dva.envs.rendering import PixelRenderer
         from dva.tasks import make_task
 
         self.task = make_task(task, physics)
@@ -138,7 +138,7 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         already holds the new episode, which this step returns with reward 0 and no flags).
         Returns the state, the observation to return (with ``return_reached``, the one an ending
         step reached) and the one each step reached."""
-        from dva.rendering import push_frame
+        from dva.envs.rendering import push_frame
 
         stepped = self.env.step(env, action)
         reached_pixels = stepped.pixels
@@ -213,7 +213,7 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         if self.render_mode is None or self._state is None:
             return None
         if self._view_renderer is None:
-            from dva.rendering import PixelRenderer
+            from dva.envs.rendering import PixelRenderer
 
             self._view_renderer = PixelRenderer(self.task, self.num_envs, self.render_size)
             self._render = jax.jit(self._view_renderer.__call__)
