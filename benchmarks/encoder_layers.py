@@ -2,7 +2,7 @@
 input-gradient convolutions of the DrQ-v2 encoder at one D.Va actor-backward chunk (N images),
 each jitted alone, against this machine's float32 matmul rate.
 
-    python benchmarks/encoder_layers.py [--images 16] [--image-size 48] [--channels-in 9]
+    python benchmarks/encoder_layers.py [--images 16] [--image-size 48] [--channels-in 9] [--no-configure]
 
 Prints a markdown table (ms and GFLOP/s per convolution) and the sum over one chunk against the
 compute bound (the first layer's input gradient is not counted: the pixels need none).
@@ -18,7 +18,14 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=16, help="images per chunk (the CPU preset's 16 envs)")
     parser.add_argument("--image-size", type=int, default=48)
     parser.add_argument("--channels-in", type=int, default=9, help="3 × stacked frames")
+    parser.add_argument(
+        "--no-configure", action="store_true", help="skip dva.configure(): JAX's default CPU convolutions"
+    )
     args = parser.parse_args()
+    if not args.no_configure:
+        import dva
+
+        dva.configure()  # before JAX computes: the CPU convolution flags, compile caches
 
     import jax
 
@@ -59,7 +66,8 @@ def main() -> None:
                 )
             )
         size, channels_in = out, 32
-    print(f"{args.images} images of {args.image_size}² × {args.channels_in}; {machine_description()}")
+    setup = "JAX's default XLA flags" if args.no_configure else "dva.configure()"
+    print(f"{args.images} images of {args.image_size}² × {args.channels_in}, {setup}; {machine_description()}")
     print(markdown_table(["layer", "convolution", "ms", "GFLOP/s", ""], rows))
     bound = total_flops / rate
     print(
@@ -70,7 +78,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    import dva
-
-    dva.configure()  # before JAX computes: the CPU convolution flags, compile caches
     main()

@@ -63,7 +63,7 @@ def test_unknown_task_is_one_line_error(capsys):
     err = capsys.readouterr().err.strip()
     assert err == (
         "dva: error: unknown task 'walker'; choose one of: cartpole_swingup, cartpole_balance, hopper, cheetah, ant, humanoid, "  # noqa: E501
-        "quadruped"
+        "quadruped, or dmc:<domain>-<task>"
     )
 
 

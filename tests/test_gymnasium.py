@@ -214,6 +214,8 @@ def test_one_environment_returns_the_final_observation_and_renders():
     assert terminated and not truncated and obs[0] >= 2.5 and isinstance(reward, float)
     frame = env.render()
     assert frame.shape == (32, 32, 3) and frame.dtype == np.uint8 and frame.std() > 0
+    frames = env.unwrapped.vector.render()  # a vector env renders a tuple of frames, one per env
+    assert isinstance(frames, tuple) and len(frames) == 1 and np.array_equal(frames[0], frame)
 
 
 def test_bad_arguments_name_the_value_and_what_is_allowed(state_env):

@@ -39,7 +39,7 @@ def cartpole_renderer():
 
 def test_cartpole_render_shows_the_cart_where_it_is(cartpole_renderer):
     qpos = jnp.array([[-1.0, 0.0], [1.0, 0.0]])  # cart left / right, pole upright
-    rgb, depth = jax.jit(cartpole_renderer.__call__)(qpos)
+    rgb, depth = jax.jit(cartpole_renderer.render_with_depth)(qpos)
     rgb = np.asarray(rgb)
     assert rgb.shape == (2, 84, 84, 3) and rgb.dtype == np.uint8
     masks = [robot_mask(image) for image in rgb]

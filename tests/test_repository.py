@@ -30,6 +30,13 @@ def test_ruff_lint_and_format():
     assert form.returncode == 0, form.stdout + form.stderr
 
 
+def test_the_package_type_checks():
+    """mypy over src/ (its settings in pyproject.toml): the Agent protocol, configs and policies
+    as typed, every call as its signature allows."""
+    result = run(sys.executable, "-m", "mypy")
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
 def test_the_algorithms_never_import_the_training_loop():
     """The loop builds agents and loads a teacher above itself; an algorithm that imported the loop
     (even inside a function) would make the import circle algorithms → training → algorithms."""

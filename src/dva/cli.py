@@ -87,7 +87,7 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = (), aliases: d
     hints, aliases = typing.get_type_hints(config_type), aliases or {}
 
     def flag_type(name: str):
-        optional = Optional[hints[name]]
+        optional = Optional[hints[name]]  # type: ignore[valid-type]  # a type found at runtime
         return Annotated[optional, tyro.conf.arg(aliases=(aliases[name],))] if name in aliases else optional
 
     fields = [
@@ -96,7 +96,7 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = (), aliases: d
         if field.name not in exclude
     ]
     overrides = dataclasses.make_dataclass(f"{config_type.__name__}Overrides", fields, frozen=True)
-    overrides.__doc__ = f"{config_type.__doc__.strip()} Unset: the preset's value."
+    overrides.__doc__ = f"{(config_type.__doc__ or '').strip()} Unset: the preset's value."
     return overrides
 
 
@@ -168,7 +168,8 @@ class TrainOptions:
         if self.run_dir is None:
             if self.resume:
                 raise DvaUsageError("--resume needs --run-dir: the run to continue")
-            self.run_dir = Path("runs") / f"{self.task}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+            name = f"{self.task.replace(':', '_')}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+            self.run_dir = Path("runs") / name
         tracker = None
         if self.track:
             from dva.runner.tracking import WandbTracker
@@ -238,12 +239,16 @@ class EvalCommand:
         import jax
         import numpy as np
 
+        from dva.envs.dmc import is_dmc
         from dva.envs.visualize import policy_video
         from dva.runner.evaluation import random_policy_returns
         from dva.runner.training import evaluate_run
         from dva.tasks import make_task
 
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
+        if is_dmc(spec.task):  # dm_control's physics: no random reference or video from here
+            print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f}")
+            return
         task = make_task(spec.task, spec.physics)
         random = random_policy_returns(task, jax.random.PRNGKey(self.seed), len(returns))
         print(
@@ -393,7 +398,11 @@ class SweepCommand(ManyRuns):
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
 
 
-AnalyzeCommand = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in ANALYSES.items())]
+# One subcommand per analysis, built from the registry (a type checker cannot evaluate it).
+if typing.TYPE_CHECKING:
+    AnalyzeCommand = Any
+else:
+    AnalyzeCommand = Union[tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in ANALYSES.items())]
 # A Union has no docstring of its own: without this, ``dva --help`` would print typing.Union's.
 ANALYZE_HELP = "The analyses behind the method (gradients, gradnorm, cost, breakdown), each writing a PNG and a table."
 
@@ -415,21 +424,18 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``dva`` console script."""
     configure()  # before anything computes: JAX reads XLA_FLAGS once
     # As tyro.extras.subcommand_cli_from_dict, but with the analyze group's description set.
-    command = tyro.cli(
-        Union[
-            tuple(
-                Annotated[
-                    Any,
-                    tyro.conf.subcommand(
-                        name=name, constructor=cls, description=ANALYZE_HELP if name == "analyze" else None
-                    ),
-                ]
-                for name, cls in COMMANDS.items()
-            )
-        ],
-        args=argv,
-        prog="dva",
-    )
+    subcommands: Any = Union[
+        tuple(
+            Annotated[
+                Any,
+                tyro.conf.subcommand(
+                    name=name, constructor=cls, description=ANALYZE_HELP if name == "analyze" else None
+                ),
+            ]
+            for name, cls in COMMANDS.items()
+        )
+    ]
+    command = tyro.cli(subcommands, args=argv, prog="dva")
     try:
         for task in [getattr(command, "task", None), *getattr(command, "tasks", [])]:
             if task is not None:

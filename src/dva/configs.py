@@ -138,8 +138,30 @@ DRQV2_CPU = dict(
 )
 
 
+# On dm_control's own tasks (rewards in [0, 1]) DrQ-v2 runs as its authors ran it: the reward
+# unscaled, 16 envs with 8 updates per round (its one update per 2 agent steps), and under either
+# preset its per-task exploration schedule, linear(1.0, 0.1, S) over S agent steps (S 100k on its
+# "easy" tasks, 500k "medium", 2M "hard"; here in env steps, × its action repeat of 2).
+DRQV2_DMC_EASY = {
+    ("cartpole", "balance"), ("cartpole", "balance_sparse"), ("cartpole", "swingup"), ("ball_in_cup", "catch"),
+    ("finger", "spin"), ("hopper", "stand"), ("pendulum", "swingup"), ("walker", "stand"), ("walker", "walk"),
+}  # fmt: skip
+DRQV2_DMC_HARD = {("humanoid", "stand"), ("humanoid", "walk"), ("humanoid", "run")}
+
+
+def drqv2_dmc_std_decay_steps(task: str) -> int:
+    """DrQ-v2's exploration-std decay on the dm_control task ``task`` (``dmc:<domain>-<task>``), in env steps."""
+    domain, _, name = task.removeprefix("dmc:").partition("-")
+    key = (domain, name.replace("-", "_"))
+    agent_steps = 100_000 if key in DRQV2_DMC_EASY else 2_000_000 if key in DRQV2_DMC_HARD else 500_000
+    return 2 * agent_steps
+
+
 def drqv2_preset(task: str, preset: str) -> dict:
     """DrQ-v2's hyperparameters of ``task`` under ``preset``."""
+    if task.startswith("dmc:"):
+        values = dict(DRQV2_PAPER["cartpole_swingup"], **(DRQV2_CPU if preset == "cpu" else {}))
+        return dict(values, reward_scale=1.0, std_decay_steps=drqv2_dmc_std_decay_steps(task))
     row = DRQV2_PAPER.get(task, DRQV2_PAPER["hopper"])  # a task without a row: the legged robots'
     return dict(row, reward_scale=OFF_POLICY_REWARD_SCALE, **(DRQV2_CPU if preset == "cpu" else {}))
 
@@ -152,7 +174,9 @@ CURL_CPU = dict(image_size=48, updates_per_iteration=4, hidden=(256, 256))
 
 def curl_preset(task: str, preset: str) -> dict:
     """CURL's hyperparameters under ``preset`` (task-independent)."""
-    return dict(CURL_CPU if preset == "cpu" else {}, reward_scale=OFF_POLICY_REWARD_SCALE)
+    return dict(
+        CURL_CPU if preset == "cpu" else {}, reward_scale=1.0 if task.startswith("dmc:") else OFF_POLICY_REWARD_SCALE
+    )
 
 
 # ---- DreamerV3 (docs/algorithms.md) --------------------------------------------------------------------

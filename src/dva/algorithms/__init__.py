@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from dva.algorithms.base import Agent, TeacherRun
 from dva.algorithms.curl import CURL, CURLConfig
@@ -31,6 +31,7 @@ from dva.configs import (
     shac_preset,
     tdmpc2_preset,
 )
+from dva.envs.dmc import DMCEnv, is_dmc, make_dmc_task
 from dva.envs.observations import PixelObservations, Renderer
 from dva.errors import DvaUsageError
 from dva.tasks import check_task_name, make_task
@@ -187,13 +188,22 @@ ALGORITHMS: dict[str, Algorithm] = {
         flag_group="tdmpc2",
     ),
 }
-AlgoName = Literal[tuple(ALGORITHMS)]  # the names `dva train --algo` accepts
+# The names `dva train --algo` accepts: a Literal built from the registry (tyro's choices); to a
+# type checker, which cannot evaluate it, a str.
+if TYPE_CHECKING:
+    AlgoName = str
+else:
+    AlgoName = Literal[tuple(ALGORITHMS)]
 assert all(entry.flag_group for entry in ALGORITHMS.values())
 
 # run.json files written before fields were renamed still load.
 RENAMED_FIELDS: dict[type, dict[str, str]] = {
     SHACConfig: {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm", "iterations": "lr_decay_iterations"}
 }
+
+
+# The algorithms that run on dm_control's tasks (no differentiable physics, no teacher).
+DMC_ALGOS = ("drqv2", "curl", "dreamerv3", "dreamerv3-state", "tdmpc2", "tdmpc2-state")
 
 
 def check_algo(algo: str) -> Algorithm:
@@ -263,8 +273,17 @@ def build_agent(
     if (entry.teacher_algo is None) != (teacher is None):
         needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"
         raise DvaUsageError(f"teacher = {teacher and teacher.algo!r}: {algo} takes {needs}")
-    task = make_task(task_name, physics)
-    renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size, mesh)
     action_repeat = getattr(config, "action_repeat", 1)  # configs without one act every control step
-    env = PixelObservations(task, config.num_envs, renderer, config.frame_stack, action_repeat)
+    env: PixelObservations | DMCEnv
+    if is_dmc(task_name):
+        if algo not in DMC_ALGOS:
+            raise DvaUsageError(
+                f"{algo} needs this project's differentiable tasks; on {task_name} use: {', '.join(DMC_ALGOS)}"
+            )
+        pixels = config.image_size if entry.renderer(config) is not None else None
+        env = DMCEnv(make_dmc_task(task_name), config.num_envs, pixels, config.frame_stack, action_repeat)
+    else:
+        task = make_task(task_name, physics)
+        renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size, mesh)
+        env = PixelObservations(task, config.num_envs, renderer, config.frame_stack, action_repeat)
     return entry.make_agent(env, config) if teacher is None else entry.make_agent(env, config, teacher)

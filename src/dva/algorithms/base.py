@@ -3,16 +3,27 @@ serves them all: budget, progress bar, logs, evaluation, checkpoints, resume, di
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Protocol, TypeVar, runtime_checkable
+from typing import Any, ClassVar, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 import jax
 
 from dva.envs.observations import Observation, PixelObservations
 
 State = TypeVar("State")  # a pytree holding everything an iteration reads and writes
+Policy = TypeVar("Policy")  # a pytree: the parameters (and statistics) acting needs
 
 
-class Agent(Protocol[State]):
+class AgentConfig(Protocol):
+    """What every algorithm's config is: a frozen dataclass (saved in ``run.json``) that says how
+    many environments the agent runs."""
+
+    __dataclass_fields__: ClassVar[dict[str, Any]]
+
+    @property
+    def num_envs(self) -> int: ...
+
+
+class Agent(Protocol[State, Policy]):
     """An algorithm: a pure, jittable ``iteration`` over a pytree state, plus its policy.
 
     ``iteration`` returns scalar metrics: ``healthy`` (False stops training at the last
@@ -24,12 +35,26 @@ class Agent(Protocol[State]):
     """
 
     env: PixelObservations  # what the agent trains in (its renderer stays alive with it)
-    config: Any  # a frozen dataclass, saved in run.json
-    metric_names: tuple[str, ...]
-    prior_cost: tuple[float, int]  # (seconds, env steps) spent before it started (DAgger's teacher)
-    # The state's fields that hold the environment batch (leading num_envs axis), which a run on
-    # several devices splits over them (dva.runner.sharding); () if the agent does not split.
-    batch_fields: tuple[str, ...]
+
+    @property
+    def config(self) -> AgentConfig:
+        """The algorithm's config (its own dataclass), saved in ``run.json``."""
+
+    @property
+    def metric_names(self) -> tuple[str, ...]:
+        """The metrics of :meth:`iteration` the loop logs, besides the ones every agent returns."""
+
+    @property
+    def prior_cost(self) -> tuple[float, int]:
+        """(seconds, env steps) spent before it started (DAgger's teacher)."""
+
+    @property
+    def batch_fields(self) -> tuple[str, ...]:
+        """The state's fields that hold the environment batch (leading num_envs axis), which a run
+        on several devices splits over them (:mod:`dva.runner.sharding`); () if it does not split."""
+
+    def __hash__(self) -> int:
+        """Agents are stateless: the loop caches their compiled functions per agent."""
 
     @property
     def env_steps_per_iteration(self) -> int:
@@ -45,10 +70,10 @@ class Agent(Protocol[State]):
     def iteration(self, state: State) -> tuple[State, dict[str, jax.Array]]:
         """One training iteration (the loop jits it and donates ``state``)."""
 
-    def policy(self, state: State) -> Any:
+    def policy(self, state: State) -> Policy:
         """The parameters :meth:`act` needs (a pytree), taken from the training state."""
 
-    def act(self, policy: Any, observation: Observation) -> jax.Array:
+    def act(self, policy: Policy, observation: Observation) -> jax.Array:
         """The deterministic action in [−1, 1] for a batch of observations (evaluation)."""
 
     def abort_reason(self, metrics: dict[str, Any]) -> str:

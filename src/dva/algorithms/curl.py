@@ -82,6 +82,7 @@ class CURL(OffPolicyAgent):
     """The CURL agent (an :class:`~dva.algorithms.base.Agent`); see the module docstring."""
 
     loss_names = ("critic_loss", "actor_loss", "contrastive_loss", "q_mean")
+    config: CURLConfig
 
     def __init__(self, env: PixelObservations, config: CURLConfig) -> None:
         super().__init__(env, config)

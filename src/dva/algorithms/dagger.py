@@ -121,8 +121,8 @@ class DAgger:
     def init(self, key: jax.Array) -> DAggerState:
         env_key, student_key, key = jax.random.split(key, 3)
         env = self.env.reset(env_key)
-        student = self.student.init(student_key, env.pixels[:1])
-        example = {"pixels": env.pixels[0], "action": jnp.zeros(self.task.action_dim)}
+        student = self.student.init(student_key, env.frames[:1])
+        example = {"pixels": env.frames[0], "action": jnp.zeros(self.task.action_dim)}
         return DAggerState(
             student=student,
             opt_state=self.optimizer.init(student),

@@ -63,6 +63,7 @@ class DrQV2(OffPolicyAgent):
     """The DrQ-v2 agent (an :class:`~dva.algorithms.base.Agent`); see the module docstring."""
 
     loss_names = ("critic_loss", "actor_loss", "q_mean")
+    config: DrQV2Config
 
     def __init__(self, env: PixelObservations, config: DrQV2Config) -> None:
         super().__init__(env, config)

@@ -66,7 +66,7 @@ class OffPolicyState(struct.PyTreeNode):
 
 def newest_frame(env: EnvState) -> jax.Array:
     """What a pixel agent's replay stores of an observation: its newest frame."""
-    return env.pixels[..., -3:]
+    return env.frames[..., -3:]
 
 
 def collect_into_replay(
@@ -146,6 +146,7 @@ class OffPolicyAgent(abc.ABC):
     """The shared collection and update loop; see the module docstring."""
 
     loss_names: tuple[str, ...]  # the update's metrics
+    optimizer: optax.GradientTransformation  # the critic's (and encoder's), made by the agent
 
     def __init__(self, env: PixelObservations, config: OffPolicyConfig) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:
@@ -224,7 +225,7 @@ class OffPolicyAgent(abc.ABC):
         env_key, learner_key, seed_key, key = jax.random.split(key, 4)
         env = self.env.reset(env_key)
         state = OffPolicyState(
-            learner=self.init_learner(learner_key, env.pixels[:1]),
+            learner=self.init_learner(learner_key, env.frames[:1]),
             env=env,
             first=jnp.ones(self.config.num_envs, bool),
             replay=self.replay.init(empty_step(newest_frame(env)[0], self.task.action_dim)),
@@ -243,7 +244,7 @@ class OffPolicyAgent(abc.ABC):
         cfg = self.config
         key, act_key, update_key = jax.random.split(state.key, 3)
         env_steps = self.prior_cost[1] + state.iteration * self.env_steps_per_iteration
-        action, exploration = self.explore(state.learner, state.env.pixels, env_steps, act_key)
+        action, exploration = self.explore(state.learner, state.env.frames, env_steps, act_key)
         state, finished = self.collect(state, action)
 
         def one_update(learner, key):

@@ -382,7 +382,7 @@ class SHAC:
                 (vjp, error), grad = step
                 return vjp((grad, error_weight))[0], error
 
-            steps = (taken["actor_vjp"], action_grad)
+            steps: tuple[jax.Array, ...] = (taken["actor_vjp"], action_grad)
         else:
 
             def chunks(x: jax.Array) -> jax.Array:  # (h, N, ...) → (h / c, c·N, ...)

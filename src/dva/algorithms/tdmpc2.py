@@ -255,7 +255,7 @@ class TDMPC2:
 
     def observation(self, env: EnvState) -> jax.Array:
         """What the encoder reads: the frame stack, or the state."""
-        return env.pixels if self.pixels else env.obs
+        return env.frames if self.pixels else env.obs
 
     def encode(self, params: dict, observation: jax.Array) -> jax.Array:
         return self.encoder.apply(params["encoder"], observation)
@@ -329,13 +329,13 @@ class TDMPC2:
         the mean std of its first action (the exploration noise while training)."""
         cfg, action_dim = self.config, self.task.action_dim
         prior_key, sample_key, value_key, choice_key, noise_key = jax.random.split(key, 5)
-        prior_actions = []
+        prior_steps = []
         prior_z = jnp.broadcast_to(z, (cfg.num_pi_trajs, z.shape[-1]))
         for step_key in jax.random.split(prior_key, cfg.horizon):
             action = self.policy_sample(params["policy"], prior_z, step_key)[0]
-            prior_actions.append(action)
+            prior_steps.append(action)
             prior_z = self.next(params, prior_z, action)
-        prior_actions = jnp.stack(prior_actions)  # (H, P, A)
+        prior_actions = jnp.stack(prior_steps)  # (H, P, A)
         samples_z = jnp.broadcast_to(z, (cfg.num_samples, z.shape[-1]))
 
         def refit(carry, keys):
@@ -436,14 +436,14 @@ class TDMPC2:
         and the loss terms."""
         cfg = self.config
         weight = cfg.rho ** jnp.arange(cfg.horizon)[:, None] / cfg.batch_size  # (H, 1)
-        z, zs, consistency = self.encode(params, first_obs), [], 0.0
-        zs.append(z)
+        z = self.encode(params, first_obs)
+        rollout, consistency = [z], jnp.zeros(())
         for t in range(cfg.horizon):
             z = self.next(params, z, batch.action[t])
-            zs.append(z)
+            rollout.append(z)
             error = jnp.mean((z - next_z[t]) ** 2, -1)
             consistency = consistency + jnp.sum(weight[t] * batch.bootstrap[t] * error)
-        zs = jnp.stack(zs)
+        zs = jnp.stack(rollout)
         inputs = concat_action(zs[:-1], batch.action)
         reward_logits = self.reward_head.apply(params["reward"], inputs)
         reward_error = categorical_cross_entropy(reward_logits, twohot(batch.reward, self.bins))

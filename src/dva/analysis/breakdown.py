@@ -4,14 +4,15 @@ backward), rendering, actor forward/backward, critic fitting."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import jax
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
-from dva.algorithms import build_agent, make_config
+from dva.algorithms import make_config
 from dva.algorithms.shac import SHACConfig
 from dva.analysis.bench import markdown_table, write_csv
-from dva.analysis.profile import iteration_breakdown, per_million_steps
+from dva.analysis.profile import build_shac, iteration_breakdown, per_million_steps
 
 
 def measure_iteration(
@@ -20,7 +21,7 @@ def measure_iteration(
     """The configuration and :func:`iteration_breakdown` of ``algo`` on ``task``, timed after one
     iteration (so the state is a realistic one, not the reset)."""
     config = make_config(task, algo, preset, **overrides)
-    agent = build_agent(task, algo, config)
+    agent = build_shac(task, algo, config)
     state = jax.jit(agent.init)(jax.random.PRNGKey(seed))
     state, _ = jax.jit(agent.iteration)(state)
     return config, iteration_breakdown(agent, state)
@@ -32,7 +33,7 @@ def write_breakdown_report(
     """``breakdown.csv``, ``breakdown.md`` and ``breakdown.png`` (one stacked bar, seconds per 1M steps)."""
     per_million = per_million_steps(times, config.num_envs, config.horizon)
     total = sum(per_million.values())
-    rows = [
+    rows: list[dict[str, Any]] = [
         {"part": part, "seconds_per_million_steps": seconds, "share": seconds / total}
         for part, seconds in per_million.items()
     ]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 from dva.tasks import TASKS
 
@@ -22,7 +23,7 @@ class SizeOverrides:
     image_size: int | None = None
     """Override the preset's image side (pixels)."""
 
-    def overrides(self) -> dict[str, int | None]:
+    def overrides(self) -> dict[str, Any]:
         return {"num_envs": self.num_envs, "horizon": self.horizon, "image_size": self.image_size}
 
 

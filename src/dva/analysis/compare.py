@@ -32,7 +32,7 @@ import typing
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from dva.errors import DvaUsageError
 
@@ -52,7 +52,7 @@ class Setting:
     label: str
     task: str
     algo: str
-    overrides: tuple[tuple[str, object], ...] = ()
+    overrides: tuple[tuple[str, Any], ...] = ()
 
     @property
     def slug(self) -> str:
@@ -80,6 +80,7 @@ def figure_settings(
         not frames or len(set(frames)) != len(frames) or not all(isinstance(k, int) and k >= 1 for k in frames)
     ):
         raise DvaUsageError(f"frames = {list(frames)} is not allowed; use distinct ints ≥ 1, e.g. 1 2 3")
+    per_task: list[tuple[str, str, tuple[tuple[str, Any], ...]]]  # (label, algo, config overrides)
     if figure == "ablation-value":
         per_task = [("D.Va", "dva", ()), ("D.Va without critic", "dva", (("use_critic", False),))]
     elif figure == "ablation-frames":

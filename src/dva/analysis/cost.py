@@ -18,9 +18,10 @@ import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 from tqdm import tqdm
 
-from dva.algorithms import build_agent, make_config
+from dva.algorithms import make_config
 from dva.algorithms.shac import SHAC, TrainState
 from dva.analysis.bench import markdown_table, timed, write_csv
+from dva.analysis.profile import build_shac
 
 COMPARED = ("dva", "shac-pixels")  # the method and its baseline (paper's "SHAC + diff. rendering")
 PAPER_BACKWARD_S = {  # the paper's Table 1 (RTX 4080): (D.Va, visual SHAC)
@@ -53,6 +54,8 @@ def planned_memory_bytes(compiled: jax.stages.Compiled) -> int:
     assignment (one block on CPU; scan residuals included). XLA's own ``peak_memory_in_bytes`` is
     not usable on CPU: it reports 2 MB for a scan whose residuals take 128 MB."""
     stats = compiled.memory_analysis()
+    if stats is None:
+        raise RuntimeError(f"XLA reports no memory analysis on {jax.default_backend()}")
     return (
         stats.argument_size_in_bytes + stats.output_size_in_bytes + stats.temp_size_in_bytes - stats.alias_size_in_bytes
     )
@@ -80,7 +83,9 @@ def measure_costs(
     D.Va reusing the rollout's kept backward passes (chunk 0), and visual SHAC — same networks,
     envs, horizon, images. Without ``timing`` only the memory, from compiling (minutes instead of
     an hour)."""
-    variants = [("dva", chunk, f"dva, chunk {chunk}")] + ([("dva", 0, "dva, kept")] if kept else [])
+    variants: list[tuple[str, int | None, str]] = [("dva", chunk, f"dva, chunk {chunk}")]
+    if kept:
+        variants.append(("dva", 0, "dva, kept"))
     variants.append((COMPARED[1], None, COMPARED[1]))
     rows = []
     for task in tqdm(tasks, desc="gradient cost", dynamic_ncols=True):
@@ -89,7 +94,7 @@ def measure_costs(
             config = make_config(
                 task, algo, "paper", num_envs=num_envs, horizon=horizon, image_size=image_size, **overrides
             )
-            agent = build_agent(task, algo, config)
+            agent = build_shac(task, algo, config)
             init = jax.jit(agent.init) if timing else lambda key: jax.eval_shape(agent.init, key)
             state = init(jax.random.PRNGKey(seed))
             rows.append(

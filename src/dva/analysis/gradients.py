@@ -13,9 +13,10 @@ from jax.flatten_util import ravel_pytree
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 from tqdm import tqdm
 
-from dva.algorithms import build_agent, make_config
+from dva.algorithms import make_config
 from dva.algorithms.shac import SHAC
 from dva.analysis.bench import write_csv
+from dva.analysis.profile import build_shac
 
 FIELDS = ["iteration", "cosine", "apg_norm", "dpg_norm", "train_return"]
 
@@ -26,7 +27,7 @@ def compare_gradients(
     """Train SHAC (state, full gradient) for ``iterations``; every ``every`` iterations record the
     cosine similarity and norms of APG and DPG at the current parameters."""
     config = make_config(task_name, "shac", preset, **overrides)
-    full = build_agent(task_name, "shac", config)
+    full = build_shac(task_name, "shac", config)
     decoupled, task = SHAC(full.env, dataclasses.replace(config, gradient="decoupled")), full.task
 
     @jax.jit

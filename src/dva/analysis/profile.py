@@ -10,8 +10,18 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from dva.algorithms.shac import SHAC, TrainState
+from dva.algorithms import build_agent
+from dva.algorithms.shac import SHAC, SHACConfig, TrainState
 from dva.analysis.bench import timed
+
+
+def build_shac(task: str, algo: str, config: SHACConfig) -> SHAC:
+    """:func:`~dva.algorithms.build_agent` for the SHAC family (dva, shac, shac-pixels, dpg),
+    whose trainer these analyses take apart."""
+    agent = build_agent(task, algo, config)
+    if not isinstance(agent, SHAC):
+        raise TypeError(f"{algo} is not of the SHAC family; these analyses need its trainer")
+    return agent
 
 
 def iteration_breakdown(agent: SHAC, state: TrainState) -> dict[str, float]:

@@ -110,7 +110,7 @@ def steps(value: float) -> str:
 
 def spread(values: list[float]) -> str:
     """One seed's value, or the mean ± std over seeds."""
-    return whole(values[0]) if len(values) == 1 else f"{whole(np.mean(values))} ± {np.std(values):.0f}"
+    return whole(values[0]) if len(values) == 1 else f"{whole(float(np.mean(values)))} ± {np.std(values):.0f}"
 
 
 def per_seed(values: list[str]) -> str:
@@ -130,12 +130,11 @@ def first_column(threshold: float, with_steps: bool = True) -> Callable[[list[Ru
     return lambda runs: per_seed([when(run) for run in runs])
 
 
-def at_column(minutes: float | None, env_steps: float | None) -> Callable[[list[Run]], str]:
+def at_column(axis: str, value: float) -> Callable[[list[Run]], str]:
+    """Each seed's evaluation at ``value`` on ``axis`` ("wall_time" in seconds or "env_steps")."""
+
     def cell(runs: list[Run]) -> str:
-        values = [
-            run.at(run.wall_time, 60 * minutes) if minutes is not None else run.at(run.env_steps, env_steps)
-            for run in runs
-        ]
+        values = [run.at(getattr(run, axis), value) for run in runs]
         return per_seed(["–" if v is None else whole(v) for v in values])
 
     return cell
@@ -186,9 +185,9 @@ def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
     if match := re.fullmatch(r"minutes to (-?[\d.]+)", spec):
         return f"minutes to {match[1]}", first_column(float(match[1]), with_steps=False)
     if match := re.fullmatch(r"at ([\d.]+) min", spec):
-        return f"eval at {match[1]} min", at_column(float(match[1]), None)
+        return f"eval at {match[1]} min", at_column("wall_time", 60 * float(match[1]))
     if match := re.fullmatch(r"at ([\d.]+)k steps", spec):
-        return f"eval at {match[1]}k env steps", at_column(None, 1e3 * float(match[1]))
+        return f"eval at {match[1]}k env steps", at_column("env_steps", 1e3 * float(match[1]))
     allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps"])
     raise DvaUsageError(f"unknown results column {spec!r}; allowed: {allowed}")
 
@@ -249,11 +248,10 @@ class Section:
         tables = []
         for table in self.meta.get("tables", []):
             if "csv" in table:
-                rows = csv_rows(self.folder / table["csv"])
+                records = csv_rows(self.folder / table["csv"])
                 header = [name for name, _ in table["columns"]]
-                tables.append(
-                    markdown_table(header, [[csv_field(r, spec) for _, spec in table["columns"]] for r in rows]) + "\n"
-                )
+                cells = [[csv_field(r, spec) for _, spec in table["columns"]] for r in records]
+                tables.append(markdown_table(header, cells) + "\n")
                 continue
             columns = [run_column(spec) for spec in table["columns"]]
             settings = table.get("settings", list(self.meta.get("runs", {})))
@@ -338,7 +336,7 @@ def generate(root: Path, path: str) -> str:
 
 def differences(root: Path) -> str:
     """A unified diff of every document against its regenerated self ('' when all agree)."""
-    diff = []
+    diff: list[str] = []
     for path in DOCUMENTS:
         old, new = (root / path).read_text(), generate(root, path)
         diff += difflib.unified_diff(old.splitlines(True), new.splitlines(True), path, f"{path} (regenerated)")

@@ -27,7 +27,8 @@ final pose; a new episode's stack is its first frame repeated.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Literal
 
 import gymnasium
 import jax
@@ -38,6 +39,9 @@ from gymnasium.vector import AutoresetMode
 
 from dva.envs.registry import TASK_CLASSES
 from dva.errors import DvaUsageError
+
+if TYPE_CHECKING:  # the tasks load MuJoCo: imported when an env is made, not with dva
+    from dva.tasks import EnvState
 
 ObsType = Literal["state", "pixels", "both"]
 OBS_TYPES: tuple[str, ...] = ("state", "pixels", "both")
@@ -110,23 +114,24 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         self.env = PixelObservations(self.task, num_envs, renderer, frame_stack)
         self.num_envs, self.obs_type, self.array_type = num_envs, obs_type, array_type
         self.render_mode, self.render_size = render_mode, render_size
-        self._view_renderer = None
+        self._render_views: Callable[[jax.Array], jax.Array] | None = None  # made on the first render()
 
         state_space = spaces.Box(-np.inf, np.inf, (self.task.obs_dim,), np.float32)
         pixel_space = spaces.Box(0, 255, (image_size, image_size, 3 * frame_stack), np.uint8)
-        self.single_observation_space = {
+        spaces_by_type: dict[str, spaces.Space] = {
             "state": state_space,
             "pixels": pixel_space,
             "both": spaces.Dict({"state": state_space, "pixels": pixel_space}),
-        }[obs_type]
+        }
+        self.single_observation_space = spaces_by_type[obs_type]
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.task.action_dim,), np.float32)
         self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, num_envs)
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, num_envs)
 
         self._reset = jax.jit(self.env.reset)
         self._step = jax.jit(self._step_and_observe, static_argnums=3)
-        self._state = None
-        self._key = None
+        self._state: EnvState | None = None
+        self._key: jax.Array | None = None
         self._held = np.zeros(num_envs, bool)  # NEXT_STEP: reset on the next step instead of stepping
 
     # ---- the jitted pieces ----------------------------------------------------------------------
@@ -141,21 +146,21 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         from dva.envs.rendering import push_frame
 
         stepped = self.env.step(env, action)
-        reached_pixels = stepped.pixels
+        reached_pixels = stepped.frames
         if self.env.has_pixels:
             # Where an episode ended the stack restarts; the one the step reached is the previous
             # stack plus a frame of the final pose, rendered only when some episode ended.
             def reached(stepped):
-                return push_frame(env.pixels, self.env.renderer(stepped.final_qpos), jnp.zeros_like(stepped.done))
+                return push_frame(env.frames, self.env.renderer(stepped.final_qpos), jnp.zeros_like(stepped.done))
 
-            reached_pixels = jax.lax.cond(jnp.any(stepped.done), reached, lambda stepped: stepped.pixels, stepped)
+            reached_pixels = jax.lax.cond(jnp.any(stepped.done), reached, lambda stepped: stepped.frames, stepped)
         unchanged = env.replace(
             reward=jnp.zeros_like(env.reward),
             terminated=jnp.zeros_like(env.terminated),
             truncated=jnp.zeros_like(env.truncated),
         )
         env = select(held, unchanged, stepped)
-        obs = self._observation(env.obs, env.pixels)
+        obs = self._observation(env.obs, env.frames)
         final = self._observation(stepped.final_obs, reached_pixels)
         if return_reached:
             obs = select(env.done, final, obs)
@@ -185,7 +190,7 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         fresh = self._reset(key)
         self._state = fresh if mask is None else select(jnp.asarray(mask), fresh, self._state)
         self._held = np.zeros(self.num_envs, bool) if mask is None else self._held & ~mask
-        return self._out(self._observation(self._state.obs, self._state.pixels)), {}
+        return self._out(self._observation(self._state.obs, self._state.frames)), {}
 
     def step(self, actions):
         """One control step of every sub-environment: ``(obs, reward, terminated, truncated, info)``."""
@@ -207,17 +212,16 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
             self._held = done
         return self._out(obs), self._out(state.reward), self._out(state.terminated), self._out(state.truncated), info
 
-    def render(self) -> np.ndarray | None:
-        """``render_mode="rgb_array"``: every sub-environment's view from the task's camera,
-        ``(num_envs, render_size, render_size, 3)`` uint8."""
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """``render_mode="rgb_array"``: every sub-environment's view from the task's camera, one
+        ``(render_size, render_size, 3)`` uint8 frame each (a tuple, as Gymnasium's vector envs)."""
         if self.render_mode is None or self._state is None:
             return None
-        if self._view_renderer is None:
+        if self._render_views is None:
             from dva.envs.rendering import PixelRenderer
 
-            self._view_renderer = PixelRenderer(self.task, self.num_envs, self.render_size)
-            self._render = jax.jit(self._view_renderer.__call__)
-        return np.asarray(self._render(self._state.data.qpos))
+            self._render_views = jax.jit(PixelRenderer(self.task, self.num_envs, self.render_size).__call__)
+        return tuple(np.asarray(self._render_views(self._state.data.qpos)))
 
     def _out(self, tree):
         return tree if self.array_type == "jax" else jax.tree.map(np.asarray, tree)

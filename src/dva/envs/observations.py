@@ -32,6 +32,13 @@ class Renderer(Protocol):
 Observation = dict[str, jax.Array]  # {"state": (N, obs_dim), "pixels": (N, H, W, 3·k) or (N, 0)}
 
 
+def check_stacking(frame_stack: int, action_repeat: int) -> None:
+    """Frames stacked and control steps per action must be whole numbers ≥ 1."""
+    for name, value in (("frame_stack", frame_stack), ("action_repeat", action_repeat)):
+        if not isinstance(value, int) or value < 1:
+            raise DvaUsageError(f"{name} {value!r} is not allowed; use an int ≥ 1")
+
+
 class PixelObservations:
     """``num_envs`` copies of ``task`` observed through ``renderer`` with ``frame_stack`` frames,
     each action held for ``action_repeat`` control steps.
@@ -50,9 +57,7 @@ class PixelObservations:
     ) -> None:
         if renderer is not None and renderer.num_envs != num_envs:
             raise DvaUsageError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
-        for name, value in (("frame_stack", frame_stack), ("action_repeat", action_repeat)):
-            if not isinstance(value, int) or value < 1:
-                raise DvaUsageError(f"{name} {value!r} is not allowed; use an int ≥ 1")
+        check_stacking(frame_stack, action_repeat)
         self.task, self.num_envs, self.renderer = task, num_envs, renderer
         self.frame_stack, self.action_repeat = frame_stack, action_repeat
 
@@ -64,6 +69,11 @@ class PixelObservations:
     @property
     def has_pixels(self) -> bool:
         return self.renderer is not None
+
+    def evaluation_env(self) -> PixelObservations:
+        """The env evaluations run on: this one (its state is the caller's, so evaluating leaves
+        training's episodes as they were)."""
+        return self
 
     @property
     def differentiable_pixels(self) -> bool:
@@ -83,7 +93,7 @@ class PixelObservations:
             env = self._repeat(env, action)
         if self.renderer is None:
             return env
-        return env.replace(pixels=push_frame(env.pixels, self.renderer(env.data.qpos), env.done))
+        return env.replace(pixels=push_frame(env.frames, self.renderer(env.data.qpos), env.done))
 
     def _repeat(self, env: EnvState, action: jax.Array) -> EnvState:
         """The remaining control steps of one repeated action: rewards summed and the end flags
@@ -104,4 +114,4 @@ class PixelObservations:
     @staticmethod
     def observe(env: EnvState) -> Observation:
         """What a policy may look at."""
-        return {"state": env.obs, "pixels": env.pixels}
+        return {"state": env.obs, "pixels": env.frames}

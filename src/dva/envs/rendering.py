@@ -127,12 +127,13 @@ class PixelRenderer:
             except Exception:  # noqa: BLE001 - a failed computation reports itself where its result is read
                 pass
 
-    def __call__(self, qpos: jax.Array) -> jax.Array | tuple[jax.Array, jax.Array]:
-        """Render ``qpos`` of shape ``(num_envs, nq)``.
+    def __call__(self, qpos: jax.Array) -> jax.Array:
+        """Render ``qpos`` of shape ``(num_envs, nq)``: uint8 RGB ``(num_envs, height, width, 3)``."""
+        return self.render_with_depth(qpos)[0]
 
-        Returns uint8 RGB ``(num_envs, height, width, 3)``; with ``depth=True`` also float32
-        depth in metres ``(num_envs, height, width)``, clipped at ``MAX_DEPTH``.
-        """
+    def render_with_depth(self, qpos: jax.Array) -> tuple[jax.Array, jax.Array | None]:
+        """RGB as :meth:`__call__` and, from a renderer made with ``depth=True``, float32 depth in
+        metres ``(num_envs, height, width)``, clipped at ``MAX_DEPTH`` (else None)."""
         if qpos.shape != (self.num_envs, self.task.mj_model.nq):
             raise DvaUsageError(
                 f"qpos has shape {tuple(qpos.shape)}; this renderer needs ({self.num_envs}, {self.task.mj_model.nq})"
@@ -151,7 +152,7 @@ class PixelRenderer:
         rgb = mjx.get_rgb(context, self._camera_slot, rgb_packed)
         rgb = jnp.round(rgb * 255.0).astype(jnp.uint8)
         if not self.depth:
-            return rgb
+            return rgb, None
         # get_depth divides by a scale and clips to [0, 1]: scale by the far limit, then back.
         depth = MAX_DEPTH * mjx.get_depth(context, self._camera_slot, depth_packed, MAX_DEPTH)[..., 0]
         return rgb, depth

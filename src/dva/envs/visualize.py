@@ -54,7 +54,7 @@ def write_video(path: Path, frames: list[np.ndarray] | np.ndarray, fps: int = 30
 
 
 def render_trajectory(
-    renderer: PixelRenderer, qpos_trajectory: jax.Array, columns: int | None = None, tile: bool = True
+    renderer: PixelRenderer, qpos_trajectory: np.ndarray | jax.Array, columns: int | None = None, tile: bool = True
 ) -> np.ndarray:
     """Render each step of ``qpos_trajectory`` (T, num_envs, nq): tiled into one image per step
     (T, H', W', 3), or with ``tile=False`` per env (T, num_envs, H, W, 3)."""

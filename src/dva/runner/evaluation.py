@@ -25,6 +25,7 @@ def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, reco
     ``record=True`` also returns, per step, ``qpos`` (T, N, nq) and the newest frame the policy saw
     (T, N, H, W, 3; (T, N, 0) without pixels) — what a video needs.
     """
+    env = env.evaluation_env()
     reset_key, policy_key = jax.random.split(key)
     state = env.reset(reset_key)
 
@@ -33,7 +34,7 @@ def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, reco
         action, memory = policy(env.observe(state), memory, step_key)
         state = env.step(state, action)
         total = total + running * state.reward
-        shown = (state.data.qpos, state.pixels[..., -3:]) if record else None
+        shown = (state.data.qpos, state.frames[..., -3:]) if record else None
         return (state, memory, total, running * (1.0 - state.done)), shown
 
     ones = jnp.ones(env.num_envs)

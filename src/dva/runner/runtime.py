@@ -51,8 +51,7 @@ def configure_caches() -> None:
         import warp
     except ImportError:  # only the Warp pixel renderer needs it; physics and state-based training do not
         return
-    warp.config.quiet = True  # no start-up banner on stdout
-    warp.config.log_level = warp.LOG_WARNING  # no per-kernel "Module … load" lines
+    warp.config.log_level = warp.LOG_WARNING  # no start-up banner, no per-kernel "Module … load" lines
 
 
 def configure() -> None:

@@ -8,6 +8,7 @@ import math
 import os
 import secrets
 from pathlib import Path
+from typing import Any
 
 
 class WandbTracker:
@@ -19,7 +20,8 @@ class WandbTracker:
             import wandb
         except ImportError:
             raise ImportError("--track needs the 'wandb' extra: pip install 'dva[wandb]'") from None
-        self.wandb, self.project, self.run = wandb, project or os.environ.get("WANDB_PROJECT", "dva"), None
+        self.wandb, self.project = wandb, project or os.environ.get("WANDB_PROJECT", "dva")
+        self.run: Any = None  # a wandb Run once started
 
     def start(self, run_dir: Path, config: dict) -> None:
         """Open (or reopen, on resume) the W&B run of ``run_dir``."""

@@ -10,7 +10,6 @@ import dataclasses
 import functools
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -23,6 +22,7 @@ from tqdm import tqdm
 
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
 from dva.algorithms.base import Agent, RecurrentAgent, TeacherRun
+from dva.envs.dmc import is_dmc
 from dva.errors import DvaUsageError
 from dva.runner.evaluation import evaluate_policy
 from dva.runner.sharding import device_mesh, place
@@ -87,8 +87,8 @@ def load_teacher(run_dir: str | None) -> TeacherRun:
     """The finished run an agent learns from (see :class:`~dva.algorithms.base.TeacherRun`)."""
     if run_dir is None:
         raise DvaUsageError("teacher = None: this algorithm needs a teacher run directory (--teacher)")
-    spec, agent, state = load_run(run_dir)
-    last = read_progress(run_dir)[-1]
+    spec, agent, state = load_run(Path(run_dir))
+    last = read_progress(Path(run_dir))[-1]
     return TeacherRun(spec.algo, agent, agent.policy(state), (float(last["wall_time"]), int(last["env_steps"])))
 
 
@@ -107,10 +107,10 @@ class Compiled(NamedTuple):
     """An agent's jitted functions: initial state, iteration (its state donated), evaluation, and
     evaluation that also records each step's ``qpos`` and camera frame (for ``dva eval`` and videos)."""
 
-    init: Callable
-    iteration: Callable
-    evaluate: Callable
-    evaluate_recorded: Callable
+    init: jax.stages.Wrapped
+    iteration: jax.stages.Wrapped
+    evaluate: jax.stages.Wrapped
+    evaluate_recorded: jax.stages.Wrapped
 
 
 @functools.lru_cache(maxsize=4)
@@ -270,7 +270,8 @@ def train(
         began = time.perf_counter()
         config = train_teacher(algo, config, task, preset, seed, run_dir, physics)  # DAgger's, if it has none
         clock.exclude(time.perf_counter() - began)  # the teacher's time counts through agent.prior_cost
-        spec = write_spec(run_dir, RunSpec(task, algo, preset, seed, config, make_task(task, physics).physics))
+        physics = "dm_control" if is_dmc(task) else make_task(task, physics).physics
+        spec = write_spec(run_dir, RunSpec(task, algo, preset, seed, config, physics))
     mesh = run_mesh(spec, devices)
     agent = build(spec, mesh)
     checkpoints = Checkpoints(checkpoint_manager(run_dir), checkpoint_every, checkpoint_minutes)
@@ -550,7 +551,7 @@ class Checkpoints:
 def show_progress(bar: tqdm, row: dict, budget: Budget, clock: RunClock) -> None:
     bar.update(1)
     postfix = dict(steps=row["env_steps"], ret=f"{row['train_return']:.1f}", s_it=f"{row['iteration_time']:.2f}")
-    if budget.iterations is None:  # a time budget: tqdm cannot know the ETA, so show what is left
+    if budget.iterations is None and budget.minutes is not None:  # tqdm knows no ETA: show what is left
         left = max(0.0, 60 * (budget.minutes - budget.elapsed_minutes(clock)))
         postfix["left"] = time.strftime("%H:%M:%S", time.gmtime(left))
     bar.set_postfix(postfix)

@@ -22,9 +22,14 @@ TASKS: dict[str, type[Task]] = {name: task_class(path) for name, path in TASK_CL
 
 
 def check_task_name(name: str) -> None:
-    """Raise a one-line ``ValueError`` naming ``name`` and the tasks there are."""
-    if name not in TASKS:
-        raise DvaUsageError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}")
+    """Raise a one-line ``ValueError`` naming ``name`` and the tasks there are (``dmc:`` names:
+    dm_control's, see :mod:`dva.envs.dmc`)."""
+    if name.startswith("dmc:"):
+        from dva.envs.dmc import make_dmc_task
+
+        make_dmc_task(name)
+    elif name not in TASKS:
+        raise DvaUsageError(f"unknown task {name!r}; choose one of: {', '.join(TASKS)}, or dmc:<domain>-<task>")
 
 
 @functools.cache

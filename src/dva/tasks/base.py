@@ -57,6 +57,13 @@ class EnvState(struct.PyTreeNode):
     pixels: jax.Array | None = None
 
     @property
+    def frames(self) -> jax.Array:
+        """The stacked camera frames of a :class:`~dva.envs.observations.PixelObservations` env."""
+        if self.pixels is None:
+            raise ValueError("a bare task's state has no frames: PixelObservations renders them")
+        return self.pixels
+
+    @property
     def done(self) -> jax.Array:
         """Episode ended on the last step, for either reason."""
         return self.terminated | self.truncated
@@ -72,7 +79,7 @@ class Task(abc.ABC):
     name: ClassVar[str]
     episode_length: ClassVar[int] = 1000
     camera: ClassVar[str] = "track"  # the camera the pixel observations come from
-    physics: ClassVar[str] = "penalty"  # the default contact model (dva.tasks.physics)
+    physics: str = "penalty"  # the default contact model (dva.tasks.physics); an instance holds its own
     # Penalty contacts (dflex's): 16 substeps at 60 Hz, parameters per robot.
     penalty_substeps: ClassVar[int] = 16
     penalty_contact: ClassVar[PenaltyContact] = PenaltyContact(ke=2e4, kd=1e3, kf=1e3, mu=0.9)

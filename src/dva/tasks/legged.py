@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.typing import ArrayLike
 from mujoco import mjx
 
 from dva.tasks.base import Task, load_asset_spec
@@ -17,9 +18,9 @@ from dva.tasks.physics import PenaltyContact
 from dva.tasks.planar import soft_height_reward
 
 
-def rotate(quat: jax.Array, vec: jax.Array) -> jax.Array:
+def rotate(quat: jax.Array, vec: ArrayLike) -> jax.Array:
     """Rotate ``vec`` by the unit quaternion ``quat`` (w, x, y, z)."""
-    w, u = quat[0], quat[1:]
+    w, u, vec = quat[0], quat[1:], jnp.asarray(vec)
     return vec + 2.0 * jnp.cross(u, jnp.cross(u, vec) + w * vec)
 
 
