@@ -92,6 +92,14 @@ BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run
         ["train", "--task", "cartpole_swingup", "--algo", "dva", "--resume", "--run-dir", "SHAC_RUN"],
         "holds a shac run on hopper, not dva on cartpole_swingup; pass --task hopper --algo shac",
     ),
+    (  # without --algo a resume is the run's own algorithm, not the default dva
+        ["train", "--task", "cartpole_swingup", "--resume", "--run-dir", "SHAC_RUN"],
+        "holds a shac run on hopper, not shac on cartpole_swingup; pass --task hopper --algo shac",
+    ),
+    (
+        ["train", "--task", "hopper", "--resume", "--run-dir", "SHAC_RUN", "--shac.horizon", "8"],
+        "--shac.* flags (horizon): --resume keeps the run's own config",
+    ),
     (["train", "--shac.horizon", "0", "--run-dir", "RUN"], "horizon = 0 is not allowed; use a whole number > 0"),
     (["report", "--stamp", "fig4_hopper"], "--stamp needs --commit"),
 ]

@@ -117,8 +117,8 @@ class TrainOptions:
     state-to-visual DAgger, DreamerV3 or TD-MPC2 from pixels or the state)."""
 
     task: str = "cartpole_swingup"
-    algo: AlgoName = "dva"
-    """The algorithm (the docs' Algorithms page describes each)."""
+    algo: AlgoName | None = None
+    """The algorithm (the docs' Algorithms page describes each); default dva, on --resume the run's own."""
     preset: PresetName = "cpu"
     """paper (the paper's hyperparameters) | cpu (fewer envs, smaller images)"""
     seed: int = 0
@@ -151,15 +151,22 @@ class TrainOptions:
     wandb_project: str | None = None
     """The W&B project (default: $WANDB_PROJECT, else dva)."""
 
+    def resolved_algo(self) -> str | None:
+        """--algo, else dva for a new run; None on --resume (the run's own, from its run.json)."""
+        return self.algo or (None if self.resume else "dva")
+
     def config_overrides(self) -> dict:
         """The flags of this algorithm's group; a clear error for another group's."""
         overrides = {}
+        algo = self.resolved_algo()
         for group in FLAG_GROUPS:
             values = {k: v for k, v in dataclasses.asdict(getattr(self, group)).items() if v is not None}
-            if group == ALGORITHMS[self.algo].flag_group:
+            if algo is not None and group == ALGORITHMS[algo].flag_group:
                 overrides = values
+            elif values and algo is None:
+                raise DvaUsageError(f"--{group}.* flags ({', '.join(values)}): --resume keeps the run's own config")
             elif values:
-                raise DvaUsageError(f"--{group}.* flags ({', '.join(values)}) do not apply to --algo {self.algo}")
+                raise DvaUsageError(f"--{group}.* flags ({', '.join(values)}) do not apply to --algo {algo}")
         return overrides
 
     def run(self) -> None:
@@ -168,7 +175,7 @@ class TrainOptions:
         if self.run_dir is None:
             if self.resume:
                 raise DvaUsageError("--resume needs --run-dir: the run to continue")
-            name = f"{self.task.replace(':', '_')}_{self.algo}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+            name = f"{self.task.replace(':', '_')}_{self.resolved_algo()}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
             self.run_dir = Path("runs") / name
         tracker = None
         if self.track:
@@ -448,7 +455,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"dva: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
     except TrainingDiverged as error:  # not a bug in dva: say what happened and what to try
-        algo = getattr(command, "algo", None)
+        algo = command.resolved_algo() if isinstance(command, TrainOptions) else getattr(command, "algo", None)
         hint = ALGORITHMS[algo].divergence_hint if algo in ALGORITHMS else "lower learning rates"
         print(f"dva: training stopped: {error}. Resume from that checkpoint (--resume) with {hint}.", file=sys.stderr)
         raise SystemExit(3) from None
