@@ -246,7 +246,7 @@ class EvalCommand:
         import jax
         import numpy as np
 
-        from dva.envs.dmc import is_dmc
+        from dva.envs.registry import is_dmc
         from dva.envs.visualize import policy_video
         from dva.runner.evaluation import random_policy_returns
         from dva.runner.training import evaluate_run

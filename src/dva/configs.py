@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Literal
 
+from dva.envs.registry import dmc_domain_task, is_dmc
+
 PresetName = Literal["paper", "cpu"]
 PRESETS: tuple[str, ...] = ("paper", "cpu")
 
@@ -151,15 +153,14 @@ DRQV2_DMC_HARD = {("humanoid", "stand"), ("humanoid", "walk"), ("humanoid", "run
 
 def drqv2_dmc_std_decay_steps(task: str) -> int:
     """DrQ-v2's exploration-std decay on the dm_control task ``task`` (``dmc:<domain>-<task>``), in env steps."""
-    domain, _, name = task.removeprefix("dmc:").partition("-")
-    key = (domain, name.replace("-", "_"))
+    key = dmc_domain_task(task)
     agent_steps = 100_000 if key in DRQV2_DMC_EASY else 2_000_000 if key in DRQV2_DMC_HARD else 500_000
     return 2 * agent_steps
 
 
 def drqv2_preset(task: str, preset: str) -> dict:
     """DrQ-v2's hyperparameters of ``task`` under ``preset``."""
-    if task.startswith("dmc:"):
+    if is_dmc(task):
         values = dict(DRQV2_PAPER["cartpole_swingup"], **(DRQV2_CPU if preset == "cpu" else {}))
         return dict(values, reward_scale=1.0, std_decay_steps=drqv2_dmc_std_decay_steps(task))
     row = DRQV2_PAPER.get(task, DRQV2_PAPER["hopper"])  # a task without a row: the legged robots'
@@ -174,9 +175,7 @@ CURL_CPU = dict(image_size=48, updates_per_iteration=4, hidden=(256, 256))
 
 def curl_preset(task: str, preset: str) -> dict:
     """CURL's hyperparameters under ``preset`` (task-independent)."""
-    return dict(
-        CURL_CPU if preset == "cpu" else {}, reward_scale=1.0 if task.startswith("dmc:") else OFF_POLICY_REWARD_SCALE
-    )
+    return dict(CURL_CPU if preset == "cpu" else {}, reward_scale=1.0 if is_dmc(task) else OFF_POLICY_REWARD_SCALE)
 
 
 # ---- DreamerV3 (docs/algorithms.md) --------------------------------------------------------------------

@@ -31,8 +31,9 @@ from dva.configs import (
     shac_preset,
     tdmpc2_preset,
 )
-from dva.envs.dmc import DMCEnv, is_dmc, make_dmc_task
+from dva.envs.dmc import DMCEnv, make_dmc_task
 from dva.envs.observations import PixelObservations, Renderer
+from dva.envs.registry import is_dmc
 from dva.errors import DvaUsageError
 from dva.tasks import check_task_name, make_task
 
@@ -195,15 +196,16 @@ if TYPE_CHECKING:
 else:
     AlgoName = Literal[tuple(ALGORITHMS)]
 assert all(entry.flag_group for entry in ALGORITHMS.values())
+# The algorithms that run on dm_control's tasks: all but the SHAC family, which differentiates
+# this project's physics, and those that learn from a (SHAC) teacher.
+DMC_ALGOS = tuple(
+    name for name, entry in ALGORITHMS.items() if entry.config_type is not SHACConfig and entry.teacher_algo is None
+)
 
 # run.json files written before fields were renamed still load.
 RENAMED_FIELDS: dict[type, dict[str, str]] = {
     SHACConfig: {"grad_clip": "clip_grad_norm", "max_grad_norm": "abort_grad_norm", "iterations": "lr_decay_iterations"}
 }
-
-
-# The algorithms that run on dm_control's tasks (no differentiable physics, no teacher).
-DMC_ALGOS = ("drqv2", "curl", "dreamerv3", "dreamerv3-state", "tdmpc2", "tdmpc2-state")
 
 
 def check_algo(algo: str) -> Algorithm:

@@ -37,18 +37,13 @@ from flax import struct
 from jax.experimental import io_callback
 
 from dva.envs.observations import Observation, check_stacking
+from dva.envs.registry import DMC_PREFIX, dmc_domain_task
 from dva.envs.rendering import push_frame, reset_frame_stack
 from dva.errors import DvaUsageError
 from dva.tasks.base import EnvState
 
-PREFIX = "dmc:"
 EPISODE_LENGTH = 1000  # control steps: every suite task's time limit
 CAMERAS = {"quadruped": 2}  # the camera each domain is seen from (DrQ-v2's choice), else 0
-
-
-def is_dmc(name: str) -> bool:
-    """Whether ``name`` names a dm_control task (``dmc:<domain>-<task>``)."""
-    return name.startswith(PREFIX)
 
 
 @functools.cache
@@ -94,13 +89,13 @@ class DMCTask:
 def make_dmc_task(name: str) -> DMCTask:
     """The dm_control task ``dmc:<domain>-<task>``; a one-line error names the tasks there are."""
     suite = dm_control_suite()
-    domain, _, task = name.removeprefix(PREFIX).partition("-")
-    if (domain, task.replace("-", "_")) not in suite.ALL_TASKS:
-        choices = ", ".join(f"{PREFIX}{d}-{t.replace('_', '-')}" for d, t in suite.ALL_TASKS)
+    domain, task = dmc_domain_task(name)
+    if (domain, task) not in suite.ALL_TASKS:
+        choices = ", ".join(f"{DMC_PREFIX}{d}-{t.replace('_', '-')}" for d, t in suite.ALL_TASKS)
         raise DvaUsageError(f"unknown dm_control task {name!r}; choose one of: {choices}")
-    env = dm_control_suite().load(domain, task.replace("-", "_"), task_kwargs={"random": 0})
+    env = suite.load(domain, task, task_kwargs={"random": 0})
     obs_dim = sum(int(np.prod(spec.shape)) for spec in env.observation_spec().values())
-    return DMCTask(name, domain, task.replace("-", "_"), obs_dim, int(np.prod(env.action_spec().shape)))
+    return DMCTask(name, domain, task, obs_dim, int(np.prod(env.action_spec().shape)))
 
 
 def flat_observation(observation: dict) -> np.ndarray:

@@ -15,3 +15,17 @@ TASK_CLASSES: dict[str, str] = {
     "humanoid": "dva.tasks.legged:Humanoid",
     "quadruped": "dva.tasks.legged:Quadruped",
 }
+
+# dm_control's own tasks (dva.envs.dmc) are named dmc:<domain>-<task>, e.g. dmc:ball_in_cup-catch.
+DMC_PREFIX = "dmc:"
+
+
+def is_dmc(name: str) -> bool:
+    """Whether ``name`` names a dm_control task."""
+    return name.startswith(DMC_PREFIX)
+
+
+def dmc_domain_task(name: str) -> tuple[str, str]:
+    """dm_control's (domain, task) of ``dmc:<domain>-<task>`` (its task names use ``_``)."""
+    domain, _, task = name.removeprefix(DMC_PREFIX).partition("-")
+    return domain, task.replace("-", "_")

@@ -22,7 +22,8 @@ from tqdm import tqdm
 
 from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
 from dva.algorithms.base import Agent, RecurrentAgent, TeacherRun
-from dva.envs.dmc import is_dmc
+from dva.envs.dmc import make_dmc_task
+from dva.envs.registry import is_dmc
 from dva.errors import DvaUsageError
 from dva.runner.evaluation import evaluate_policy
 from dva.runner.sharding import device_mesh, place
@@ -270,7 +271,7 @@ def train(
         began = time.perf_counter()
         config = train_teacher(algo, config, task, preset, seed, run_dir, physics)  # DAgger's, if it has none
         clock.exclude(time.perf_counter() - began)  # the teacher's time counts through agent.prior_cost
-        physics = "dm_control" if is_dmc(task) else make_task(task, physics).physics
+        physics = make_dmc_task(task).physics if is_dmc(task) else make_task(task, physics).physics
         spec = write_spec(run_dir, RunSpec(task, algo, preset, seed, config, physics))
     mesh = run_mesh(spec, devices)
     agent = build(spec, mesh)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 import importlib
 
-from dva.envs.registry import TASK_CLASSES
+from dva.envs.registry import TASK_CLASSES, is_dmc
 from dva.errors import DvaUsageError
 from dva.tasks.base import CONTROL_DT, EnvState, Task
 from dva.tasks.physics import PHYSICS, check_physics
@@ -24,7 +24,7 @@ TASKS: dict[str, type[Task]] = {name: task_class(path) for name, path in TASK_CL
 def check_task_name(name: str) -> None:
     """Raise a one-line ``ValueError`` naming ``name`` and the tasks there are (``dmc:`` names:
     dm_control's, see :mod:`dva.envs.dmc`)."""
-    if name.startswith("dmc:"):
+    if is_dmc(name):
         from dva.envs.dmc import make_dmc_task
 
         make_dmc_task(name)
