@@ -13,6 +13,7 @@ from mujoco import mjx
 from dva.tasks import make_task
 from dva.tasks.physics import (
     PenaltyContact,
+    bodies_of,
     contact_state,
     floor_contact_points,
     joint_forces,
@@ -24,6 +25,13 @@ from dva.tasks.physics import (
 )
 
 LEGGED = ["hopper", "cheetah", "ant", "humanoid", "quadruped"]
+
+
+def mjx_penalty_forces(task, data: mjx.Data) -> jax.Array:
+    """The task's penalty forces (nv,) with MJX computing the kinematics and velocities they read."""
+    data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
+    bodies = bodies_of(task.model, data)
+    return penalty_forces(data.qpos, data.qvel, bodies, task.contact_points, task.penalty_contact, task.joints)
 
 
 def test_contact_points_are_capsule_end_spheres():
@@ -56,11 +64,12 @@ def test_point_velocities_and_forces_match_mujocos_jacobians():
     @jax.jit
     def both(data):
         data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
-        position, _ = contact_state(data, points)
+        bodies = bodies_of(task.model, data)
+        position, _ = contact_state(bodies, points)
         jacobian = jax.vmap(lambda p, b: mjx.jac(task.model, data, p, b)[0])(position, jnp.asarray(points.body))
         ours = (
-            point_velocities(task.model, data, points, position),
-            point_forces_to_joints(task.model, data, points, position, force),
+            point_velocities(bodies, points, position),
+            point_forces_to_joints(bodies, points, position, force),
         )
         return ours, (jnp.einsum("pvi,v->pi", jacobian, data.qvel), jnp.einsum("pvi,pi->v", jacobian, force))
 
@@ -88,7 +97,8 @@ def test_penalty_force_on_a_sliding_sphere_hand_computed():
     def depth_and_forces(data):
         data = mjx.fwd_velocity(mx, mjx.fwd_position(mx, data))
         no_joints = joint_forces(model, params.limit_kd)  # a free joint only: no joint forces
-        return contact_state(data, points)[1], penalty_forces(mx, data, points, params, no_joints)
+        bodies = bodies_of(mx, data)
+        return contact_state(bodies, points)[1], penalty_forces(data.qpos, data.qvel, bodies, points, params, no_joints)
 
     depth, qfrc = depth_and_forces(data)
     assert float(depth[0]) == pytest.approx(0.01, abs=1e-6)
@@ -114,7 +124,8 @@ def test_joint_limit_spring_and_damping():
     @jax.jit  # one compile, not one per operation
     def forces(data):
         data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
-        return penalty_forces(task.model, data, task.contact_points, task.penalty_contact, joints)
+        bodies = bodies_of(task.model, data)
+        return penalty_forces(data.qpos, data.qvel, bodies, task.contact_points, task.penalty_contact, joints)
 
     qfrc = np.asarray(forces(data))
     # The hopper's joints: damping 2 of their own + 10 (dflex's limit_kd, on at all times).
@@ -136,17 +147,7 @@ def test_joint_springs_and_always_on_damping_hand_computed():
         joint = task.mj_model.joint(name)
         qpos[joint.qposadr[0]], qvel[joint.dofadr[0]] = angle, speed
     data = task._data0.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
-    qfrc = np.asarray(
-        jax.jit(
-            lambda d: penalty_forces(
-                task.model,
-                mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, d)),
-                task.contact_points,
-                task.penalty_contact,
-                task.joints,
-            )
-        )(data)
-    )
+    qfrc = np.asarray(jax.jit(lambda d: mjx_penalty_forces(task, d))(data))
     for name, (angle, speed) in zip(names, [(0.3, 1.5), (-0.5, -2.0), (0.2, 0.7)]):
         stiffness, damping = expected[name]
         assert qfrc[task.mj_model.joint(name).dofadr[0]] == pytest.approx(
@@ -160,12 +161,13 @@ def test_one_substep_equals_mujocos_own_step():
     """With one substep the mass matrix factored once per control step is the current one, so the
     penalty step must equal MJX's full pipeline (position, velocity, actuation, acceleration,
     Euler) under the same explicit forces — in contact, float64."""
+    task_class = type(make_task("hopper"))  # outside float64: make_task keeps the task it builds
     with jax.enable_x64(True):
-        task = type(make_task("hopper"))()
+        task = task_class()
         state = task.reset(jax.random.PRNGKey(2), 1)
         data = jax.tree.map(lambda x: x[0], state.data)
         data = data.replace(qpos=data.qpos.at[1].set(-0.1), ctrl=jnp.linspace(-1.0, 1.0, task.action_dim))
-        forces = lambda d: penalty_forces(task.model, d, task.contact_points, task.penalty_contact, task.joints)
+        forces = lambda d: mjx_penalty_forces(task, d)
 
         def reference(data):
             data = mjx.fwd_velocity(task.model, mjx.fwd_position(task.model, data))
@@ -174,7 +176,11 @@ def test_one_substep_equals_mujocos_own_step():
             )
             return mjx.euler(task.model, data.replace(qacc=data.qacc_smooth))
 
-        ours, theirs = jax.jit(lambda d: penalty_step(task.model, d, 1, forces))(data), jax.jit(reference)(data)
+        tree_forces = lambda qpos, qvel, bodies: penalty_forces(
+            qpos, qvel, bodies, task.contact_points, task.penalty_contact, task.joints
+        )
+        ours = jax.jit(lambda d: penalty_step(task.model, task.tree, d, 1, tree_forces))(data)
+        theirs = jax.jit(reference)(data)
         assert float(jnp.abs(forces(mjx.fwd_position(task.model, data))).max()) > 100.0  # feet in the floor
         np.testing.assert_allclose(ours.qvel, theirs.qvel, rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(ours.qpos, theirs.qpos, rtol=1e-12, atol=1e-12)

@@ -35,6 +35,7 @@ from dva.tasks.physics import (
     penalty_forces,
     penalty_step,
 )
+from dva.tasks.tree import KinematicTree
 
 CONTROL_DT = 1.0 / 60.0  # the paper's control rate (60 Hz)
 
@@ -127,6 +128,7 @@ class Task(abc.ABC):
         if physics == "penalty":
             self.contact_points = floor_contact_points(self.mj_model)
             self.joints = joint_forces(self.mj_model, self.penalty_contact.limit_kd)
+            self.tree = KinematicTree.from_model(self.mj_model)
             # Applied by penalty_forces instead; MuJoCo's passive forces would count them twice.
             self.mj_model.dof_damping[:] = 0.0
             self.mj_model.jnt_stiffness[:] = 0.0
@@ -231,8 +233,10 @@ class Task(abc.ABC):
         # through long rollouts are too coarse.
         with jax.default_matmul_precision("highest"):
             if self.physics == "penalty":
-                forces = lambda d: penalty_forces(self.model, d, self.contact_points, self.penalty_contact, self.joints)
-                return penalty_step(self.model, data, self.substeps, forces)
+                forces = lambda qpos, qvel, bodies: penalty_forces(
+                    qpos, qvel, bodies, self.contact_points, self.penalty_contact, self.joints
+                )
+                return penalty_step(self.model, self.tree, data, self.substeps, forces)
             substep = lambda d, _: (implicit_gradient_substep(self.model, self.converged_model, d), None)
             return jax.lax.scan(substep, data, None, length=self.substeps)[0]
 

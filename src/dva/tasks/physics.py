@@ -29,6 +29,8 @@ from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
 from dva.errors import DvaUsageError
+from dva.tasks.tree import Bodies, KinematicTree, integrate
+from dva.tasks.tree import forward as tree_forward
 
 PHYSICS: tuple[str, ...] = ("penalty", "mujoco")
 SAFE_EPS = 1e-6  # keeps |v_t| and its gradient finite at zero sliding speed
@@ -163,98 +165,110 @@ def _is_ancestor(model: mujoco.MjModel, ancestor: int, body: int) -> bool:
     return body == ancestor
 
 
-def contact_state(data: mjx.Data, points: ContactPoints) -> tuple[jax.Array, jax.Array]:
+def _rows(index: np.ndarray, size: int, dtype) -> jax.Array:
+    """The one-hot (len(index), size) matrix that picks ``x[index]`` as ``rows @ x``: its reverse
+    pass is a matrix product, where a gather's is a scatter."""
+    return jnp.asarray(np.eye(size)[np.asarray(index, int)], dtype)
+
+
+def bodies_of(model: mjx.Model, data: mjx.Data) -> Bodies:
+    """The :class:`~dva.tasks.tree.Bodies` of MJX data whose kinematics and ``com_pos`` (and for
+    ``cvel``, ``com_vel``) have run."""
+    return Bodies(
+        xpos=data.xpos, xmat=data.xmat, root_com=data.subtree_com[model.body_rootid], cvel=data.cvel, cdof=data.cdof
+    )
+
+
+def contact_state(bodies: Bodies, points: ContactPoints) -> tuple[jax.Array, jax.Array]:
     """Contact positions (P, 3) and penetration depths (P,) of the points.
 
     A sphere's contact position is its lowest point (centre − radius·ẑ), as in dflex: forces act
-    there, so friction also turns the body. Needs the kinematics of ``data`` (``xpos``, ``xmat``).
+    there, so friction also turns the body.
     """
-    body, radius = jnp.asarray(points.body), jnp.asarray(points.radius)
-    centre = data.xpos[body] + jnp.einsum("pij,pj->pi", data.xmat[body], jnp.asarray(points.local))
+    pick = _rows(points.body, bodies.xpos.shape[0], bodies.xpos.dtype)
+    centre = pick @ bodies.xpos + jnp.einsum(
+        "pij,pj->pi", jnp.tensordot(pick, bodies.xmat, axes=1), jnp.asarray(points.local)
+    )
+    radius = jnp.asarray(points.radius)
     depth = jnp.maximum(radius - centre[:, 2], 0.0)
-    return centre.at[:, 2].add(-radius), depth
+    return centre - radius[:, None] * jnp.array([0.0, 0.0, 1.0]), depth
 
 
 def penalty_forces(
-    model: mjx.Model, data: mjx.Data, points: ContactPoints, params: PenaltyContact, joints: JointForces
+    qpos: jax.Array, qvel: jax.Array, bodies: Bodies, points: ContactPoints, params: PenaltyContact, joints: JointForces
 ) -> jax.Array:
     """Generalised forces (nv,) of the ground contacts and the joints' limits, springs and
     damping of one environment."""
-    qfrc = joint_torques(data.qpos, data.qvel, params, joints)
+    qfrc = joint_torques(qpos, qvel, params, joints)
     if len(points.body):
-        qfrc = qfrc + contact_forces(model, data, points, params)
+        qfrc = qfrc + contact_forces(bodies, points, params)
     return qfrc
 
 
 def joint_torques(qpos: jax.Array, qvel: jax.Array, params: PenaltyContact, joints: JointForces) -> jax.Array:
     """Generalised forces (nv,) of the joint limits, springs and damping (see :class:`JointForces`)."""
-    q = qpos[joints.limit_qpos]
+    nq, nv, dtype = qpos.shape[0], qvel.shape[0], qvel.dtype
+    q = _rows(joints.limit_qpos, nq, dtype) @ qpos
     lower, upper = joints.limit_range[:, 0], joints.limit_range[:, 1]
     limit = params.limit_ke * (jnp.maximum(lower - q, 0.0) - jnp.maximum(q - upper, 0.0))
-    spring = -joints.stiffness * (qpos[joints.qpos] - joints.reference)
-    damping = -joints.damping * qvel[joints.dof]
-    qfrc = jnp.zeros(qvel.shape, qvel.dtype).at[joints.dof].add(spring + damping)
-    return qfrc.at[joints.limit_dof].add(limit)
+    spring = -joints.stiffness * (_rows(joints.qpos, nq, dtype) @ qpos - joints.reference)
+    damping = -joints.damping * (_rows(joints.dof, nv, dtype) @ qvel)
+    return (spring + damping) @ _rows(joints.dof, nv, dtype) + limit @ _rows(joints.limit_dof, nv, dtype)
 
 
-def contact_forces(model: mjx.Model, data: mjx.Data, points: ContactPoints, params: PenaltyContact) -> jax.Array:
-    """Generalised forces (nv,) of the penalty ground contacts (see :class:`PenaltyContact`).
-    Needs ``data``'s kinematics and ``cvel``/``cdof`` (MJX's ``com_pos`` and ``com_vel``)."""
-    lowest, depth = contact_state(data, points)
-    velocity = point_velocities(model, data, points, lowest)
+def contact_forces(bodies: Bodies, points: ContactPoints, params: PenaltyContact) -> jax.Array:
+    """Generalised forces (nv,) of the penalty ground contacts (see :class:`PenaltyContact`)."""
+    lowest, depth = contact_state(bodies, points)
+    velocity = point_velocities(bodies, points, lowest)
     normal_speed = velocity[:, 2]
     normal = params.ke * depth - params.kd * depth * jnp.minimum(normal_speed, 0.0)
-    tangential = velocity.at[:, 2].set(0.0)
+    tangential = velocity * jnp.array([1.0, 1.0, 0.0])
     speed = jnp.sqrt(jnp.sum(tangential**2, axis=-1) + SAFE_EPS**2)
     # −v_t/|v_t| · min(kf |v_t|, μ ke d): viscous when slow, Coulomb-capped when sliding.
     friction = -tangential * (jnp.minimum(params.kf * speed, params.mu * params.ke * depth) / speed)[:, None]
-    return point_forces_to_joints(model, data, points, lowest, friction.at[:, 2].add(normal))
+    return point_forces_to_joints(bodies, points, lowest, friction + normal[:, None] * jnp.array([0.0, 0.0, 1.0]))
 
 
 # Both below use the bodies' spatial velocities and the dofs' motion axes instead of a Jacobian per
 # point (J·q̇ and Jᵀf without forming J): the Humanoid's substep, 35 points, runs 5× faster.
-def _c_frame_offsets(model: mjx.Model, data: mjx.Data, points: ContactPoints, position: jax.Array) -> jax.Array:
-    """``position`` (P, 3) relative to the origin of MJX's c-frame of each point's body (its tree's
-    centre of mass), where ``cvel`` and ``cdof`` are expressed."""
-    return position - data.subtree_com[jnp.asarray(model.body_rootid)[jnp.asarray(points.body)]]
-
-
-def point_velocities(model: mjx.Model, data: mjx.Data, points: ContactPoints, position: jax.Array) -> jax.Array:
+def point_velocities(bodies: Bodies, points: ContactPoints, position: jax.Array) -> jax.Array:
     """World velocities (P, 3) of the points at ``position`` (P, 3), each fixed to its body."""
-    spatial = data.cvel[jnp.asarray(points.body)]  # (P, 6): angular velocity, linear velocity at the c-frame origin
-    return spatial[:, 3:] + jnp.cross(spatial[:, :3], _c_frame_offsets(model, data, points, position))
+    pick = _rows(points.body, bodies.xpos.shape[0], position.dtype)
+    spatial = pick @ bodies.cvel  # (P, 6): angular velocity, linear velocity at the c-frame origin
+    return spatial[:, 3:] + jnp.cross(spatial[:, :3], position - pick @ bodies.root_com)
 
 
-def point_forces_to_joints(
-    model: mjx.Model, data: mjx.Data, points: ContactPoints, position: jax.Array, force: jax.Array
-) -> jax.Array:
+def point_forces_to_joints(bodies: Bodies, points: ContactPoints, position: jax.Array, force: jax.Array) -> jax.Array:
     """Generalised forces (nv,) of world forces (P, 3) applied at ``position`` (P, 3): ``Σ_p J_pᵀ f_p``."""
-    offset = _c_frame_offsets(model, data, points, position)
+    offset = position - _rows(points.body, bodies.xpos.shape[0], position.dtype) @ bodies.root_com
     wrench = jnp.concatenate([jnp.cross(offset, force), force], axis=-1)  # (P, 6): torque, force
-    return jnp.sum(data.cdof * (jnp.asarray(points.moved_by, force.dtype) @ wrench), axis=-1)
+    return jnp.sum(bodies.cdof * (jnp.asarray(points.moved_by, force.dtype) @ wrench), axis=-1)
 
 
-def penalty_step(model: mjx.Model, data: mjx.Data, substeps: int, forces) -> mjx.Data:
+def penalty_step(model: mjx.Model, tree: KinematicTree, data: mjx.Data, substeps: int, forces) -> mjx.Data:
     """``substeps`` semi-implicit Euler steps of the penalty model under one ``ctrl``.
 
     As dflex, the mass matrix is built and factored once per call (a control step) and reused by
-    every substep: a substep runs the kinematics, the bias forces (gravity, Coriolis) and
-    ``forces(data) -> (nv,)`` (contacts and joint forces, given current kinematics and
-    velocities), then one back-substitution. Motor forces depend on ``ctrl`` alone and are computed
+    every substep: a substep runs the kinematics and bias forces (gravity, Coriolis) of
+    :func:`dva.tasks.tree.forward`, ``forces(qpos, qvel, bodies) -> (nv,)`` (contacts and joint
+    forces), then one back-substitution. Motor forces depend on ``ctrl`` alone and are computed
     once too. No constraint exists, so nothing is solved; damping is explicit (in ``forces``).
     """
-    # MJX exports no back-substitution with a given factor: its solve_m (private) is that.
+    # MJX exports no back-substitution with a given factor: its solve_m (private) is that. The
+    # inverse, once per control step, makes each substep's solve one matrix-vector product (a
+    # batched triangular solve per substep, and its transpose, cost 5× as much on the CPU).
     mass = mjx.factor_m(model, mjx.crb(model, mjx.com_pos(model, mjx.kinematics(model, data))))
+    inverse_mass = jax.vmap(lambda unit: mjx_smooth.solve_m(model, mass, unit))(
+        jnp.eye(model.nv, dtype=data.qvel.dtype)
+    )
     qfrc_actuator = mjx.fwd_actuation(model, mjx.transmission(model, mass)).qfrc_actuator
+    dt = float(model.opt.timestep)
 
     def substep(state: tuple[jax.Array, jax.Array], _) -> tuple[tuple[jax.Array, jax.Array], None]:
-        # Only (qpos, qvel) is carried: the reverse pass then moves two vectors from substep to
-        # substep, not a cotangent for every field of mjx.Data.
-        d = data.replace(qpos=state[0], qvel=state[1])
-        d = mjx.rne(model, mjx.com_vel(model, mjx.com_pos(model, mjx.kinematics(model, d))))
-        qacc = mjx_smooth.solve_m(model, mass, qfrc_actuator + forces(d) - d.qfrc_bias)
-        d = mjx.euler(model, d.replace(qacc=qacc))
-        return (d.qpos, d.qvel), None
+        # Only (qpos, qvel) is carried: the reverse pass moves two vectors from substep to substep.
+        qpos, bodies, qfrc_bias = tree_forward(tree, *state)
+        qvel = state[1] + dt * inverse_mass @ (qfrc_actuator + forces(qpos, state[1], bodies) - qfrc_bias)
+        return (integrate(tree, qpos, qvel, dt), qvel), None
 
     # Rematerialised: the reverse pass recomputes each substep's forward instead of storing its
     # intermediates (48 substeps × 32 steps of kinematics per env); 1.3× faster on the CPU.
@@ -289,7 +303,7 @@ def mechanical_energy(task, data: mjx.Data) -> jax.Array:
     gravity = -jnp.sum(task.model.body_mass * (data.xipos @ task.model.opt.gravity))
     contact = 0.0
     if len(task.contact_points.body):
-        _, depth = contact_state(data, task.contact_points)
+        _, depth = contact_state(bodies_of(task.model, data), task.contact_points)
         contact = 0.5 * task.penalty_contact.ke * jnp.sum(depth**2)
     joints = task.joints
     q = data.qpos[joints.limit_qpos]
