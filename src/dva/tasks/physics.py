@@ -1,8 +1,8 @@
 """How a task advances its physics: the two differentiable contact models a task can choose.
 
-``"penalty"`` — the paper's simulator (dflex): MJX computes the rigid-body dynamics (kinematics,
-mass matrix, bias forces) with MuJoCo's contact and joint-limit constraints switched off, and this
-module adds the ground contacts, joint limits, joint springs and joint damping as explicit forces,
+``"penalty"`` — the paper's simulator (dflex): MuJoCo's rigid-body dynamics (MJX builds the mass
+matrix, :mod:`dva.tasks.tree` the kinematics and bias forces of every substep) with MuJoCo's
+contact and joint-limit constraints switched off, and this module adds the ground contacts, joint limits, joint springs and joint damping as explicit forces,
 integrated by semi-implicit Euler with 16–48 substeps per 60 Hz control step and the mass matrix
 factored once per control step. Every force is an explicit, smooth-almost-everywhere function of
 ``(qpos, qvel)``, so reverse mode differentiates exactly the physics that runs forward: no
