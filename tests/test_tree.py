@@ -54,7 +54,7 @@ def test_forward_equals_mjx_in_float64(name):
         np.testing.assert_allclose(integrate(task.tree, data.qpos, data.qvel, dt), advanced.qpos, atol=1e-12)
 
 
-@pytest.mark.parametrize("name", ["hopper", "ant", "humanoid"])
+@pytest.mark.parametrize("name", ["hopper", "humanoid"])  # slides and limits; a free joint and springs
 def test_reverse_pass_equals_the_mjx_reference(name):
     """Three substeps in contact with joint limits and springs active: the step and its VJP (state
     and action, a random cotangent) equal the same step built from MJX's kinematics, velocities,
@@ -63,7 +63,7 @@ def test_reverse_pass_equals_the_mjx_reference(name):
     with jax.enable_x64(True):
         task = task_class()
         qpos, qvel = random_state(task, 1)
-        qpos[1 if name == "hopper" else 2] -= {"hopper": 0.3, "ant": 0.3, "humanoid": 1.0}[name]  # into the floor
+        qpos[1 if name == "hopper" else 2] -= {"hopper": 0.3, "humanoid": 1.0}[name]  # into the floor
         data = task._data0.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
         action = jnp.linspace(-1.0, 1.0, task.action_dim)
         model, points, params, joints = task.model, task.contact_points, task.penalty_contact, task.joints
