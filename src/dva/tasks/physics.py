@@ -2,11 +2,12 @@
 
 ``"penalty"`` — the paper's simulator (dflex): MuJoCo's rigid-body dynamics (MJX builds the mass
 matrix, :mod:`dva.tasks.tree` the kinematics and bias forces of every substep) with MuJoCo's
-contact and joint-limit constraints switched off, and this module adds the ground contacts, joint limits, joint springs and joint damping as explicit forces,
-integrated by semi-implicit Euler with 16–48 substeps per 60 Hz control step and the mass matrix
-factored once per control step. Every force is an explicit, smooth-almost-everywhere function of
-``(qpos, qvel)``, so reverse mode differentiates exactly the physics that runs forward: no
-solver, no warm start carried from step to step.
+contact and joint-limit constraints switched off, and this module adds the ground contacts, joint
+limits, joint springs and joint damping as explicit forces, integrated by semi-implicit Euler
+with 16–48 substeps per 60 Hz control step and the mass matrix inverted once per control step.
+Every force is an explicit, smooth-almost-everywhere function of ``(qpos, qvel)``, so reverse
+mode differentiates exactly the physics that runs forward: no solver, no warm start carried from
+step to step.
 
 ``"mujoco"`` — MuJoCo's soft constraints with an accurate forward and an implicit gradient: the
 constraint solve runs to convergence under ``stop_gradient`` and one full Newton step from its
