@@ -155,11 +155,6 @@ class KinematicTree:
         level_order = [b for bodies in by_level for b in bodies]
         order = np.eye(nb)[[0] + level_order].T  # column c of [world, level order] is body order_c
 
-        def is_above(upper: int, body: int) -> bool:  # ``upper`` is ``body`` or one of its parents
-            while body > 0 and body != upper:
-                body = parent[body]
-            return body == upper
-
         dof_body = [int(b) for b in model.dof_bodyid]
         dof_joint = [int(j) for j in model.dof_jntid]
         dof_slot, dof_column, dof_origin = np.zeros((nv, slot_rows)), np.zeros((nv, 3 * nb)), np.zeros((nv, nb))
@@ -177,10 +172,12 @@ class KinematicTree:
             else:
                 dof_slot[d, slot_of_joint[j]] = 1.0
                 dof_rotates[d] = float(model.jnt_type[j] == HINGE)
-                before[d, :d] = [float(dof_body[c] == b or is_above(dof_body[c], parent[b])) for c in range(d)]
+                before[d, :d] = [
+                    float(dof_body[c] == b or is_ancestor(model, dof_body[c], parent[b])) for c in range(d)
+                ]
             # Dofs of the bodies above (all of them, free ones included) move before this one.
             before[d, :] = np.maximum(
-                before[d, :], [float(dof_body[c] != b and is_above(dof_body[c], b)) for c in range(nv)]
+                before[d, :], [float(dof_body[c] != b and is_ancestor(model, dof_body[c], b)) for c in range(nv)]
             )
         roots = np.asarray(model.body_rootid)
         same_tree = (roots[:, None] == roots[None, :]).astype(float)  # (body, body)
@@ -202,9 +199,9 @@ class KinematicTree:
             dof_axis=dof_axis,
             dof_rotates=dof_rotates,
             dof_com=com_weights[dof_body],
-            ancestors=np.array([[float(is_above(dof_body[d], b)) for d in range(nv)] for b in range(nb)]),
+            ancestors=np.array([[float(is_ancestor(model, dof_body[d], b)) for d in range(nv)] for b in range(nb)]),
             before=before,
-            subtree=np.array([[float(is_above(dof_body[d], b)) for b in range(nb)] for d in range(nv)]),
+            subtree=np.array([[float(is_ancestor(model, dof_body[d], b)) for b in range(nb)] for d in range(nv)]),
             com_weights=com_weights,
             ipos=model.body_ipos.copy(),
             iquat=model.body_iquat.copy(),
@@ -220,6 +217,13 @@ class KinematicTree:
             ),
             nv=nv,
         )
+
+
+def is_ancestor(model: mujoco.MjModel, ancestor: int, body: int) -> bool:
+    """Whether ``ancestor`` is ``body`` or one of its parents."""
+    while body > 0 and body != ancestor:
+        body = model.body_parentid[body]
+    return body == ancestor
 
 
 class Bodies(struct.PyTreeNode):
