@@ -3,17 +3,21 @@ critic / rendering), plus the pixel encoder's analytic compute bound.
 
     python benchmarks/iteration.py [--task cartpole_swingup] [--algo dva] [--preset cpu]
                                    [--num-envs N] [--image-size S] [--chunk C]
+                                   [--csv FILE --label LABEL]
 
-Prints a markdown table. The encoder bound is its arithmetic (forward + backward over all h × N
-frames) divided by the float32 matmul rate this machine reaches. For pixel actors it also times
-the reference measurement — the encoder + trunk's forward and parameter gradient over 512
-images of 84² × 9 — next to PyTorch's 1.55 s on a comparable 2-core CPU, and states the actor
-backward's rate per FLOP against PyTorch's on that measurement.
+Prints a markdown table; ``--csv`` also appends the parts' seconds as one row of FILE (several
+tasks, algorithms or code versions measured into one table). The encoder bound is its arithmetic
+(forward + backward over all h × N frames) divided by the float32 matmul rate this machine
+reaches. For pixel actors it also times the reference measurement — the encoder + trunk's forward
+and parameter gradient over 512 images of 84² × 9 — next to PyTorch's 1.55 s on a comparable
+2-core CPU, and states the actor backward's rate per FLOP against PyTorch's on that measurement.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+from pathlib import Path
 
 # The reference measurement: the DrQ-v2 encoder + 64-wide trunk, forward + backward w.r.t. its parameters, on
 # (images, size, channels) uint8 pixels, PyTorch 2.13 on a comparable 2-core CPU: seconds.
@@ -41,6 +45,16 @@ def encoder_gradient_seconds(images: int, image_size: int, channels_in: int, tru
     return timed(jax.jit(jax.grad(loss)), (encoder, projection), pixels)[1]
 
 
+def append_row(path: Path, row: dict) -> None:
+    """``row`` appended to the CSV file ``path`` (its header written when the file is new)."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="cartpole_swingup")
@@ -49,6 +63,8 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int)
     parser.add_argument("--image-size", type=int)
     parser.add_argument("--chunk", type=int, default=1, help="D.Va's actor_backward_chunk (0: the kept passes)")
+    parser.add_argument("--csv", type=Path, help="append this measurement as one row to this CSV file")
+    parser.add_argument("--label", default="", help="the row's label in --csv (e.g. the code version)")
     args = parser.parse_args()
 
     from dva.analysis.bench import machine_description, markdown_table
@@ -74,6 +90,20 @@ def main() -> None:
         if part != "render_with_actor"
     ]
     print(markdown_table(["part", "seconds", "share of iteration"], rows))
+    if args.csv:
+        append_row(
+            args.csv,
+            dict(
+                label=args.label,
+                task=args.task,
+                algo=args.algo,
+                num_envs=config.num_envs,
+                horizon=config.horizon,
+                **{f"{part}_s": seconds for part, seconds in times.items() if part != "render_with_actor"},
+                rollout_backward_share=times["rollout_backward"] / times["iteration"],
+                device=machine_description(),
+            ),
+        )
     if "render_with_actor" in times:
         apart = times["render"] + times["actor_forward"]
         print(
