@@ -151,12 +151,13 @@ def test_cpu_preset_gives_pixel_actors_a_longer_decay():
     assert make_config("hopper", "dva", "cpu", lr_decay_iterations=50).lr_decay_iterations == 50
 
 
-def test_cpu_preset_gives_dva_the_state_prediction_loss_where_it_was_measured():
-    """On for D.Va's pixel actor on Hopper, the Ant and the Humanoid; off on the state, for visual
-    SHAC (whose gradient passes through the pixels: the loss is not allowed there), on Cart-pole
-    and in the paper's preset."""
+def test_cpu_preset_gives_dva_the_state_prediction_loss_on_the_legged_robots():
+    """On for D.Va's pixel actor on every legged robot; off on the state, for visual SHAC (whose
+    gradient passes through the pixels: the loss is not allowed there), on Cart-pole and in the
+    paper's preset."""
     weight = lambda task, algo, preset="cpu": make_config(task, algo, preset).state_prediction
-    assert (weight("hopper", "dva"), weight("ant", "dva"), weight("humanoid", "dva")) == (10.0, 10.0, 10.0)
+    legged = ("hopper", "cheetah", "ant", "humanoid", "quadruped")
+    assert [weight(task, "dva") for task in legged] == [10.0] * 5
     assert weight("hopper", "shac") == weight("ant", "shac-pixels") == weight("cartpole_swingup", "dva") == 0.0
     assert weight("hopper", "dva", "paper") == 0.0
     assert make_config("hopper", "dva", "cpu", state_prediction=0.0).state_prediction == 0.0

@@ -106,8 +106,9 @@ SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {
 # the simulator's state (an auxiliary loss; the return's gradient still never passes through the
 # pixels): on Hopper ≥ 3000 after ≈ 0.2M env steps instead of 0.67–0.77M, on the Ant ≥ 1500 at 51–62
 # minutes where it stayed below in two hours, on the Humanoid 5× random after 205k env steps
-# instead of 486k (docs/results.md). Measured on those three robots; the others keep it off.
-DVA_CPU_TASKS: dict[str, dict] = {task: dict(state_prediction=10.0) for task in ("hopper", "ant", "humanoid")}
+# instead of 486k (docs/results.md). Measured on those three; the Cheetah and the quadruped, legged
+# robots too, take it with them. Cart-pole keeps it off (its actor learns the pose without it).
+DVA_CPU_TASKS: dict[str, dict] = {task: dict(state_prediction=10.0) for task in LEGGED_TASKS}
 
 
 # ---- the off-policy pixel baselines (DrQ-v2, CURL) -----------------------------------------------
