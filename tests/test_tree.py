@@ -1,6 +1,7 @@
 """The level-batched rigid-body pass of ``dva.tasks.tree`` against MJX, its reference: every output
-in float64 on every robot, and the reverse pass of whole penalty steps (in contact, joint limits
-and springs on) against ``jax.vjp`` of the same steps built from MJX's own functions."""
+in float64 on every robot (the mass matrix against MuJoCo's own), and the reverse pass of whole
+penalty steps (in contact, joint limits and springs on) against ``jax.vjp`` of the same steps
+built from MJX's own functions."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from mujoco.mjx._src import smooth as mjx_smooth
 from dva.errors import DvaUsageError
 from dva.tasks import TASKS, make_task
 from dva.tasks.physics import bodies_of, penalty_forces
-from dva.tasks.tree import KinematicTree, forward, integrate
+from dva.tasks.tree import KinematicTree, forward, integrate, mass_matrix
 
 ROBOTS = [name for name in TASKS if name != "cartpole_balance"]  # balance shares swing-up's model
 
@@ -46,6 +47,14 @@ def test_forward_equals_mjx_in_float64(name):
         np.testing.assert_allclose(bodies.root_com[1:], reference.root_com[1:], atol=1e-12)
         np.testing.assert_allclose(bias, data.qfrc_bias, rtol=1e-12, atol=1e-12 * np.abs(data.qfrc_bias).max())
         assert np.abs(data.qfrc_bias).max() > 1e-2  # gravity and Coriolis forces are there to compare
+        # The mass matrix, armature included, against MuJoCo's own (mj_fullM) at the same pose.
+        mj_data = mujoco.MjData(task.mj_model)
+        mj_data.qpos[:] = np.asarray(data.qpos)
+        mujoco.mj_forward(task.mj_model, mj_data)
+        full = np.zeros((task.mj_model.nv, task.mj_model.nv))
+        mujoco.mj_fullM(task.mj_model, mj_data, full)
+        ours = jax.jit(lambda q: mass_matrix(task.tree, q))(qpos)
+        np.testing.assert_allclose(ours, full, atol=1e-12 * np.abs(full).max())
         # MJX's Euler position update, free joints' quaternions included.
         dt = 0.01
         advanced = mjx.euler(
@@ -71,11 +80,14 @@ def test_reverse_pass_equals_the_mjx_reference(name):
         def reference_step(data):
             mass = mjx.factor_m(model, mjx.crb(model, mjx.com_pos(model, mjx.kinematics(model, data))))
             actuator = mjx.fwd_actuation(model, mjx.transmission(model, mass)).qfrc_actuator
-            for _ in range(3):
-                d = mjx_forward(model, data)
+
+            def substep(_, state):  # a loop, not unrolled: MJX's reverse pass compiles once
+                d = mjx_forward(model, data.replace(qpos=state[0], qvel=state[1]))
                 qfrc = actuator + penalty_forces(d.qpos, d.qvel, bodies_of(model, d), points, params, joints)
-                data = mjx.euler(model, d.replace(qacc=mjx_smooth.solve_m(model, mass, qfrc - d.qfrc_bias)))
-            return data.qpos, data.qvel
+                d = mjx.euler(model, d.replace(qacc=mjx_smooth.solve_m(model, mass, qfrc - d.qfrc_bias)))
+                return d.qpos, d.qvel
+
+            return jax.lax.fori_loop(0, 3, substep, (data.qpos, data.qvel))
 
         substeps, task.substeps = task.substeps, 3
         try:

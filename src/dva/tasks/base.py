@@ -28,6 +28,7 @@ from mujoco import mjx
 from dva.errors import DvaUsageError
 from dva.tasks.physics import (
     PenaltyContact,
+    check_joint_transmissions,
     check_physics,
     floor_contact_points,
     implicit_gradient_substep,
@@ -129,6 +130,7 @@ class Task(abc.ABC):
             self.contact_points = floor_contact_points(self.mj_model)
             self.joints = joint_forces(self.mj_model, self.penalty_contact.limit_kd)
             self.tree = KinematicTree.from_model(self.mj_model)
+            check_joint_transmissions(self.mj_model)
             # Applied by penalty_forces instead; MuJoCo's passive forces would count them twice.
             self.mj_model.dof_damping[:] = 0.0
             self.mj_model.jnt_stiffness[:] = 0.0

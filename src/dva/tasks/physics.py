@@ -1,7 +1,7 @@
 """How a task advances its physics: the two differentiable contact models a task can choose.
 
-``"penalty"`` — the paper's simulator (dflex): MuJoCo's rigid-body dynamics (MJX builds the mass
-matrix, :mod:`dva.tasks.tree` the kinematics and bias forces of every substep) with MuJoCo's
+``"penalty"`` — the paper's simulator (dflex): MuJoCo's rigid-body dynamics (:mod:`dva.tasks.tree`
+computes the mass matrix and every substep's kinematics and bias forces) with MuJoCo's
 contact and joint-limit constraints switched off, and this module adds the ground contacts, joint
 limits, joint springs and joint damping as explicit forces, integrated by semi-implicit Euler
 with 16–48 substeps per 60 Hz control step and the mass matrix inverted once per control step.
@@ -26,11 +26,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
 from dva.errors import DvaUsageError
-from dva.tasks.tree import Bodies, KinematicTree, integrate, is_ancestor
+from dva.tasks.tree import Bodies, KinematicTree, integrate, is_ancestor, mass_matrix
 from dva.tasks.tree import forward as tree_forward
 
 PHYSICS: tuple[str, ...] = ("penalty", "mujoco")
@@ -111,6 +110,19 @@ def joint_forces(model: mujoco.MjModel, limit_kd: float) -> JointForces:
         reference=np.array(model.qpos_spring[qpos]),
         damping=np.array(model.dof_damping[dof]) + limit_kd,
     )
+
+
+def check_joint_transmissions(model: mujoco.MjModel) -> None:
+    """The penalty step drives actuators through joints only (their moment is the gear, whatever
+    the pose); an error names an actuator with another transmission."""
+    for a in range(model.nu):
+        kind = mujoco.mjtTrn(int(model.actuator_trntype[a]))
+        if kind != mujoco.mjtTrn.mjTRN_JOINT:
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a)
+            raise DvaUsageError(
+                f"actuator {name!r} has a {kind.name} transmission; penalty physics allows mjTRN_JOINT only"
+                " (or use --physics mujoco)"
+            )
 
 
 def floor_contact_points(model: mujoco.MjModel, floor: str = "floor") -> ContactPoints:
@@ -248,20 +260,19 @@ def point_forces_to_joints(bodies: Bodies, points: ContactPoints, position: jax.
 def penalty_step(model: mjx.Model, tree: KinematicTree, data: mjx.Data, substeps: int, forces) -> mjx.Data:
     """``substeps`` semi-implicit Euler steps of the penalty model under one ``ctrl``.
 
-    As dflex, the mass matrix is built and factored once per call (a control step) and reused by
+    As dflex, the mass matrix is built and inverted once per call (a control step) and reused by
     every substep: a substep runs the kinematics and bias forces (gravity, Coriolis) of
     :func:`dva.tasks.tree.forward`, ``forces(qpos, qvel, bodies) -> (nv,)`` (contacts and joint
-    forces), then one back-substitution. Motor forces depend on ``ctrl`` alone and are computed
+    forces), then one matrix-vector product. Motor forces depend on ``ctrl`` alone and are computed
     once too. No constraint exists, so nothing is solved; damping is explicit (in ``forces``).
     """
-    # MJX exports no back-substitution with a given factor: its solve_m (private) is that. The
-    # inverse, once per control step, makes each substep's solve one matrix-vector product (a
-    # batched triangular solve per substep, and its transpose, cost 5× as much on the CPU).
-    mass = mjx.factor_m(model, mjx.crb(model, mjx.com_pos(model, mjx.kinematics(model, data))))
-    inverse_mass = jax.vmap(lambda unit: mjx_smooth.solve_m(model, mass, unit))(
-        jnp.eye(model.nv, dtype=data.qvel.dtype)
-    )
-    qfrc_actuator = mjx.fwd_actuation(model, mjx.transmission(model, mass)).qfrc_actuator
+    # The mass matrix from the same level-batched pass: MJX's kinematics and crb took ~5000 of the
+    # Hopper step's operations to compile (1.5× the compile time, 1.3× the memory). Inverted once,
+    # each substep's solve is one matrix-vector product (a batched triangular solve per substep,
+    # and its transpose, cost 5× as much on the CPU).
+    inverse_mass = jnp.linalg.inv(mass_matrix(tree, data.qpos))
+    # Joint transmissions (every task's) read only qpos and the gears: no kinematics needed.
+    qfrc_actuator = mjx.fwd_actuation(model, mjx.transmission(model, data)).qfrc_actuator
     dt = float(model.opt.timestep)
 
     def substep(state: tuple[jax.Array, jax.Array], _) -> tuple[tuple[jax.Array, jax.Array], None]:

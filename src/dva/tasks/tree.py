@@ -1,6 +1,7 @@
-"""The rigid-body quantities a penalty substep needs, computed one tree level at a time.
+"""The rigid-body quantities a penalty step needs (kinematics, the mass matrix, bias forces),
+computed one tree level at a time.
 
-MJX's ``kinematics``, ``com_pos``, ``com_vel`` and ``rne`` walk the kinematic tree through
+MJX's ``kinematics``, ``com_pos``, ``crb``, ``com_vel`` and ``rne`` walk the kinematic tree through
 ``scan.body_tree``, which takes each group of bodies' rows out of full-size arrays and writes them
 back. Reverse mode turns every such take into a zero-padded full-size cotangent, and every write
 into a scatter; summed over all groups and fields, that padding is where the reverse pass's time
@@ -90,6 +91,7 @@ class KinematicTree:
     mass: np.ndarray  # (nbody,)
     inertia: np.ndarray  # (nbody, 3) principal moments
     gravity: np.ndarray  # (3,)
+    armature: np.ndarray  # (nv,) added to the mass matrix's diagonal, as MuJoCo's
     velocity_map: np.ndarray  # (nq, nv) one-hot: the dof whose velocity moves each coordinate (none for quaternions)
     free_quat: np.ndarray  # (nfree, 4, nq) one-hot rows of each free joint's quaternion
     free_spin: np.ndarray  # (nfree, 3, nv) one-hot rows of its angular velocity
@@ -208,6 +210,7 @@ class KinematicTree:
             mass=model.body_mass.copy(),
             inertia=model.body_inertia.copy(),
             gravity=model.opt.gravity.copy(),
+            armature=model.dof_armature.copy(),
             velocity_map=velocity_map,
             free_quat=np.array([eye_q[model.jnt_qposadr[j] + 3 : model.jnt_qposadr[j] + 7] for j in free]).reshape(
                 -1, 4, nq
@@ -272,6 +275,9 @@ def quat_to_mat(q: jax.Array) -> jax.Array:
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
+_CROSS = np.stack([np.stack([np.cross(a, b) for b in np.eye(3)], -1) for a in np.eye(3)], 1)  # Levi-Civita
+
+
 def _normalize_with_norm(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     # MJX's: a norm whose gradient is finite at 0 (a body at rest turns by a zero step), no 0/0.
     is_zero = jnp.all(jnp.isclose(x, 0.0), axis=-1, keepdims=True)
@@ -305,14 +311,22 @@ def _pick(rows: np.ndarray, x: jax.Array) -> jax.Array:
 
 
 # ---- the pass ---------------------------------------------------------------------------------
-def forward(tree: KinematicTree, qpos: jax.Array, qvel: jax.Array) -> tuple[jax.Array, Bodies, jax.Array]:
-    """Kinematics, velocities and bias forces (gravity, Coriolis, centrifugal) of one environment.
+class _Frames(struct.PyTreeNode):
+    """What the poses give: the normalised ``qpos``, the :class:`Bodies`' frames and motion axes,
+    and each body's spatial inertia (6, 6) about its tree's c-frame origin."""
 
-    Returns ``qpos`` with its free joints' quaternions normalised (as MJX's kinematics writes it
-    back), the :class:`Bodies`, and ``qfrc_bias`` (nv,): MJX's ``kinematics``, ``com_pos``,
-    ``com_vel`` and ``rne`` (without joint accelerations) in one pass.
-    """
-    dtype = qvel.dtype
+    qpos: jax.Array
+    xpos: jax.Array
+    xmat: jax.Array
+    root_com: jax.Array
+    cdof: jax.Array
+    inertia: jax.Array
+
+
+def _frames(tree: KinematicTree, qpos: jax.Array) -> _Frames:
+    """Kinematics and the c-frame quantities of one environment: MJX's ``kinematics`` and
+    ``com_pos``."""
+    dtype = qpos.dtype
     const = lambda x: jnp.asarray(x, dtype)  # noqa: E731
     # Down the tree, a level at a time: body poses, and each joint's world anchor and axis.
     positions, quaternions, anchors, axes = [jnp.zeros((1, 3), dtype)], [const([[1.0, 0.0, 0.0, 0.0]])], [], []
@@ -352,7 +366,7 @@ def forward(tree: KinematicTree, qpos: jax.Array, qvel: jax.Array) -> tuple[jax.
     xipos = xpos + rotate(const(tree.ipos), xquat)
     root_com = _pick(tree.com_weights, xipos)
 
-    # Every dof's motion axis (cdof), then velocities and accelerations as sums along the tree.
+    # Every dof's motion axis (cdof).
     joint_anchor = jnp.concatenate(anchors) if anchors else jnp.zeros((0, 3), dtype)
     joint_axis = jnp.concatenate(axes) if axes else jnp.zeros((0, 3), dtype)
     columns = jnp.swapaxes(xmat, -1, -2).reshape(-1, 3)
@@ -362,29 +376,57 @@ def forward(tree: KinematicTree, qpos: jax.Array, qvel: jax.Array) -> tuple[jax.
     cdof = jnp.concatenate(
         [rotates * axis, rotates * jnp.cross(axis, _pick(tree.dof_com, xipos) - point) + (1.0 - rotates) * axis], -1
     )
+
+    # Each body's spatial inertia about the c-frame origin, for motion vectors (ω, v):
+    # [[I, [m]×], [[m]×ᵀ, M·1]] with I the rotational inertia there and m the mass moment.
+    principal = quat_to_mat(quat_mul(xquat, const(tree.iquat)))
+    offset = xipos - root_com
+    mass = const(tree.mass)[:, None, None]
+    rotational = jnp.einsum("nik,nk,njk->nij", principal, const(tree.inertia), principal)
+    squared = jnp.sum(offset * offset, axis=-1)[:, None, None]
+    rotational = rotational + mass * (squared * jnp.eye(3, dtype=dtype) - offset[:, :, None] * offset[:, None, :])
+    skew = jnp.einsum("ijk,nj->nik", const(_CROSS), offset * mass[:, 0])  # [m]× v = m × v
+    inertia = jnp.concatenate(
+        [
+            jnp.concatenate([rotational, skew], axis=-1),
+            jnp.concatenate([jnp.swapaxes(skew, -1, -2), mass * jnp.eye(3, dtype=dtype)], axis=-1),
+        ],
+        axis=-2,
+    )
+    return _Frames(qpos=normalised, xpos=xpos, xmat=xmat, root_com=root_com, cdof=cdof, inertia=inertia)
+
+
+def forward(tree: KinematicTree, qpos: jax.Array, qvel: jax.Array) -> tuple[jax.Array, Bodies, jax.Array]:
+    """Kinematics, velocities and bias forces (gravity, Coriolis, centrifugal) of one environment.
+
+    Returns ``qpos`` with its free joints' quaternions normalised (as MJX's kinematics writes it
+    back), the :class:`Bodies`, and ``qfrc_bias`` (nv,): MJX's ``kinematics``, ``com_pos``,
+    ``com_vel`` and ``rne`` (without joint accelerations) in one pass.
+    """
+    frames = _frames(tree, qpos)
+    cdof = frames.cdof
+    # Velocities and accelerations as sums along the tree.
     motion = cdof * qvel[:, None]
     cvel = _pick(tree.ancestors, motion)
     # cdof_dot·q̇: each dof's motion crossed with the velocity of what carries it.
     velocity_product = motion_cross(_pick(tree.before, motion), motion)
-    gravity = jnp.concatenate([jnp.zeros(3, dtype), -const(tree.gravity)])
+    gravity = jnp.concatenate([jnp.zeros(3, qvel.dtype), -jnp.asarray(tree.gravity, qvel.dtype)])
     cacc = gravity + _pick(tree.ancestors, velocity_product)
-
-    # Each body's force (its inertia about the c-frame origin); a dof carries its subtree's.
-    principal = quat_to_mat(quat_mul(xquat, const(tree.iquat)))
-    offset = xipos - root_com
-    mass = const(tree.mass)[:, None]
-    inertia = jnp.einsum("nik,nk,njk->nij", principal, const(tree.inertia), principal)
-    squared = jnp.sum(offset * offset, axis=-1)[:, None, None]
-    inertia = inertia + mass[:, :, None] * (squared * jnp.eye(3, dtype=dtype) - offset[:, :, None] * offset[:, None, :])
-    moment = offset * mass
-
-    def inert_mul(v: jax.Array) -> jax.Array:
-        angular = jnp.einsum("nij,nj->ni", inertia, v[:, :3]) + jnp.cross(moment, v[:, 3:])
-        return jnp.concatenate([angular, mass * v[:, 3:] - jnp.cross(moment, v[:, :3])], axis=-1)
-
+    # Each body's force; a dof carries its subtree's.
+    inert_mul = lambda v: jnp.einsum("nij,nj->ni", frames.inertia, v)  # noqa: E731
     force = inert_mul(cacc) + motion_cross_force(cvel, inert_mul(cvel))
     qfrc_bias = jnp.sum(cdof * _pick(tree.subtree, force), axis=-1)
-    return normalised, Bodies(xpos=xpos, xmat=xmat, root_com=root_com, cvel=cvel, cdof=cdof), qfrc_bias
+    bodies = Bodies(xpos=frames.xpos, xmat=frames.xmat, root_com=frames.root_com, cvel=cvel, cdof=cdof)
+    return frames.qpos, bodies, qfrc_bias
+
+
+def mass_matrix(tree: KinematicTree, qpos: jax.Array) -> jax.Array:
+    """The joint-space mass matrix (nv, nv) of one environment, armature included: MJX's ``crb``
+    as ``Σ_b J_bᵀ I_b J_b`` over the bodies, ``J_b`` the motion axes of the dofs that move body b."""
+    frames = _frames(tree, qpos)
+    ancestors = jnp.asarray(tree.ancestors, qpos.dtype)
+    mass = jnp.einsum("bd,be,dk,bkl,el->de", ancestors, ancestors, frames.cdof, frames.inertia, frames.cdof)
+    return mass + jnp.diag(jnp.asarray(tree.armature, qpos.dtype))
 
 
 def integrate(tree: KinematicTree, qpos: jax.Array, qvel: jax.Array, dt: float) -> jax.Array:
