@@ -95,8 +95,9 @@ SHAC_CPU_TASKS: dict[str, dict] = {task: dict(lr_decay_iterations=4000) for task
 # decayed over 1000 iterations the actor sat at the final learning rate for most of the run and
 # its evaluations fell back (1730 at 5 minutes, 770 at 10); one core, seed 0, 15 minutes: median
 # of the last ten evaluations 1360 with the 1000-iteration decay, 1680 with 4500.
-# The Humanoid's pixel run is 8 hours, ≈ 13–14k iterations of ≈ 2 s on one core: it decays over
-# them (its 2-hour runs, 3.4k iterations into a 7000-iteration decay, were still rising at the end).
+# The Humanoid's pixel run is 8 hours: its decay spans 14k iterations, the whole run when an
+# iteration took ≈ 2 s on one core, ≈ 4.7 hours at today's ≈ 1.2 s (its 2-hour runs, 3.4k
+# iterations into a 7000-iteration decay, were still rising at the end).
 SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {
     **{task: dict(lr_decay_iterations=7000) for task in LEGGED_TASKS},
     "humanoid": dict(lr_decay_iterations=14000),
