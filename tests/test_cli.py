@@ -102,6 +102,7 @@ BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run
     ),
     (["train", "--shac.horizon", "0", "--run-dir", "RUN"], "horizon = 0 is not allowed; use a whole number > 0"),
     (["report", "--stamp", "fig4_hopper"], "--stamp needs --commit"),
+    (["eval", "RUN", "--strip", "FILE", "--strip-frames", "0"], "--strip-frames 0 is not allowed; use a number ≥ 1"),
 ]
 
 
@@ -173,8 +174,13 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
     for name in ("eval_return_vs_env_steps.png", "eval_return_vs_wall_time.png"):
         assert iio.imread(tmp_path / "plots" / name).ndim == 3
         assert (run_dir / name).exists()
-    main(["eval", str(run_dir), "--seed", "3"])
+    strip = tmp_path / "strip.png"
+    main(["eval", str(run_dir), "--seed", "3", "--strip", str(strip), "--strip-frames", "3", "--video-size", "32"])
     assert "return" in capsys.readouterr().out and not (tmp_path / "policy.mp4").exists()
+    image = iio.imread(strip)
+    assert image.shape == (32 + 2 * 2, 3 * 32 + 4 * 2, 3)  # three 32-px views in a row
+    first, last = image[2:34, 2:34], image[2:34, -34:-2]
+    assert np.abs(first.astype(int) - last).max() > 30  # the cart-pole moved between them
     # dva eval reused the recorded evaluation the training report compiled (tens of seconds on a CPU)
     assert training.compiled(training.load_run(run_dir)[1]).evaluate_recorded._cache_size() == 1
 

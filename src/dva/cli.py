@@ -233,13 +233,17 @@ TrainCommand.__doc__ = TrainOptions.__doc__
 @dataclasses.dataclass
 class EvalCommand:
     """Replay a run's latest policy (deterministic, one episode per env), print the returns and
-    optionally write a video: the actor's camera view next to a larger view."""
+    optionally write a video (the actor's camera view next to a larger view) and a strip of frames."""
 
     run_dir: tyro.conf.Positional[Path]
     video: Path | None = None
     """Where to write the mp4 (none: returns only)."""
     video_envs: int = 4
     video_size: int = 256
+    strip: Path | None = None
+    """Where to write a PNG strip of the best episode's view (none: no strip)."""
+    strip_frames: int = 8
+    """Frames in the strip, evenly spaced over the episode."""
     seed: int = 0
 
     def run(self) -> None:
@@ -247,11 +251,13 @@ class EvalCommand:
         import numpy as np
 
         from dva.envs.registry import is_dmc
-        from dva.envs.visualize import policy_video
+        from dva.envs.visualize import policy_strip, policy_video
         from dva.runner.evaluation import random_policy_returns
         from dva.runner.training import evaluate_run
         from dva.tasks import make_task
 
+        if self.strip is not None and self.strip_frames < 1:
+            raise DvaUsageError(f"--strip-frames {self.strip_frames} is not allowed; use a number ≥ 1")
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
         if is_dmc(spec.task):  # dm_control's physics: no random reference or video from here
             print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f}")
@@ -274,6 +280,10 @@ class EvalCommand:
                 action_repeat=getattr(spec.config, "action_repeat", 1),
             )
             print(f"wrote {self.video}")
+        if self.strip is not None:
+            best = int(np.argmax(returns))
+            policy_strip(self.strip, task, qpos, best, self.strip_frames, self.video_size)
+            print(f"wrote {self.strip} (env {best}, return {returns[best]:.1f})")
 
 
 @dataclasses.dataclass

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dva.envs.rendering import PixelRenderer
+from dva.errors import DvaUsageError
 from dva.tasks import CONTROL_DT, EnvState, Task
 
 
@@ -101,3 +102,15 @@ def policy_video(
     views = render_trajectory(renderer, qpos[:, :num_envs], tile=False)
     shown = np.clip(camera[:, :num_envs], 0, 255).astype(np.uint8) if camera.size else None  # float if soft-rendered
     write_video(path, side_by_side_video(shown, views), fps=round(1.0 / (CONTROL_DT * action_repeat)))
+
+
+def policy_strip(path: Path, task: Task, qpos: np.ndarray, env: int = 0, frames: int = 8, size: int = 256) -> None:
+    """A PNG of env ``env``'s ``size``² view at ``frames`` steps evenly spaced over the recorded
+    rollout ``qpos`` (T, N, nq), first to last, left to right (an episode that ends early goes on
+    from a reset, as in the video)."""
+    if not 1 <= frames <= len(qpos):
+        raise DvaUsageError(f"--strip-frames {frames} is not allowed; use 1 to {len(qpos)} (the steps recorded)")
+    steps = np.linspace(0, len(qpos) - 1, frames).round().astype(int)
+    renderer = PixelRenderer(task, 1, size, samples_per_pixel=2)
+    views = render_trajectory(renderer, np.asarray(qpos)[steps, env : env + 1], tile=False)[:, 0]
+    save_png(path, image_grid(views, columns=frames))
