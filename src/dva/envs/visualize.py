@@ -109,7 +109,7 @@ def policy_strip(path: Path, task: Task, qpos: np.ndarray, env: int = 0, frames:
     rollout ``qpos`` (T, N, nq), first to last, left to right (an episode that ends early goes on
     from a reset, as in the video)."""
     if not 1 <= frames <= len(qpos):
-        raise DvaUsageError(f"--strip-frames {frames} is not allowed; use 1 to {len(qpos)} (the steps recorded)")
+        raise DvaUsageError(f"frames = {frames} is not allowed; use 1 to {len(qpos)} (the steps recorded)")
     steps = np.linspace(0, len(qpos) - 1, frames).round().astype(int)
     renderer = PixelRenderer(task, 1, size, samples_per_pixel=2)
     views = render_trajectory(renderer, np.asarray(qpos)[steps, env : env + 1], tile=False)[:, 0]
