@@ -18,9 +18,10 @@ def test_tasks_lists_every_task_with_sizes(capsys):
     assert "ant" in out and "37" in out and "humanoid" in out and "76" in out
     assert "cartpole_swingup" in out and "240" in out
     rows = {line.split()[0]: line.split() for line in out.splitlines()[1:]}
-    assert rows["quadruped"][1:6] == ["49", "12", "1000", "penalty", "16"]
+    assert rows["quadruped"][1:7] == ["49", "12", "1000", "2000", "penalty", "16"]
+    assert [rows[task][4] for task in ("hopper", "ant", "humanoid")] == ["3000", "1500", "1000"]  # Fig 4's
     assert "20000 / 1000 / 1000 / 0.9" in " ".join(rows["hopper"])  # the paper's hopper
-    assert rows["cartpole_swingup"][6] == "none"  # nothing touches the floor
+    assert rows["cartpole_swingup"][7] == "none"  # nothing touches the floor
 
 
 def test_help_describes_every_command(capsys):
@@ -234,8 +235,8 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
     assert float(dva["env_steps_to_threshold"]) == 2000.0
     assert curl["reached"] == "0" and curl["minutes_to_threshold"] == "nan"
     assert (
-        "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | 300 | 10.0 | 500 | 0 / 1 | nan | nan |"
-        in markdown
+        "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | 300 | 10.0 | 500 "
+        "| 2092 | 0 / 1 | nan | nan |" in markdown
     )
     assert (tmp_path / "out" / "summary.md").read_text() == markdown
 

@@ -137,6 +137,30 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     assert [(c["minutes"], c["resume"]) for c in fake.calls[4:]] == [(3.0, False)]
 
 
+def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkeypatch):
+    from dva.envs.registry import TARGET_RETURNS
+
+    monkeypatch.delitem(TARGET_RETURNS, "quadruped")  # a task without a target is not timed
+    tasks = ["--tasks", "cartpole_swingup", "hopper", "quadruped"]
+    main(["compare", "ablation-value", *tasks, "--seeds", "0", "--minutes", "6", "--out", str(tmp_path)])
+    out = tmp_path / "ablation-value"
+    summary = {row["setting"]: row for row in csv.DictReader((out / "summary.csv").open())}
+    cartpole, hopper = summary["D.Va on cartpole_swingup"], summary["D.Va on hopper"]
+    # the fake's D.Va earns 100 per minute: 550 first reached at 6 minutes, 3000 never
+    assert (float(cartpole["threshold"]), cartpole["reached"], float(cartpole["minutes_to_threshold"])) == (
+        550.0,
+        "1",
+        6.0,
+    )
+    assert (float(hopper["threshold"]), hopper["reached"]) == (3000.0, "0")
+    assert summary["D.Va on quadruped"]["threshold"] == "" and summary["D.Va on quadruped"]["reached"] == ""
+    markdown = (out / "summary.md").read_text()
+    assert "| threshold | seeds reaching it |" in markdown
+    assert [line for line in markdown.splitlines() if line.startswith("| D.Va on quadruped ")][0].endswith(
+        "| – | – | – | – |"
+    )
+
+
 def test_compare_frames_trains_only_the_stacks_asked_for(fake, tmp_path):
     main(
         [

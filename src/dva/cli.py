@@ -24,21 +24,24 @@ from dva.tasks import TASKS, check_physics, check_task_name
 
 @dataclasses.dataclass
 class TasksCommand:
-    """List the tasks with observation/action sizes and episode lengths."""
+    """List the tasks with observation/action sizes, episode lengths and the target return that
+    `dva compare` times each run to."""
 
     def run(self) -> None:
+        from dva.envs.registry import TARGET_RETURNS
         from dva.tasks import make_task
 
         print(
-            f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'physics':>9}{'substeps':>10}  "
+            f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'target':>8}{'physics':>9}{'substeps':>10}  "
             f"{'contact ke / kd / kf / mu':<28}pixel camera"
         )
         for name in TASKS:
             task = make_task(name)
             c = task.penalty_contact
             contact = f"{c.ke:g} / {c.kd:g} / {c.kf:g} / {c.mu:g}" if len(task.contact_points.body) else "none"
+            target = f"{TARGET_RETURNS[name]:g}" if name in TARGET_RETURNS else "–"
             print(
-                f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{task.physics:>9}"
+                f"{name:<18}{task.obs_dim:>10}{task.action_dim:>9}{task.episode_length:>9}{target:>8}{task.physics:>9}"
                 f"{task.substeps:>10}  {contact:<28}{task.camera}"
             )
 
@@ -350,7 +353,8 @@ class ManyRuns:
     """Wall-clock budget of every run (compilation included)."""
     preset: PresetName = "cpu"
     threshold: float | None = None
-    """Report when each setting first reached this eval return (e.g. 2× a random policy's)."""
+    """Report when each setting first reached this eval return (default: its task's target
+    return, as `dva tasks` lists them)."""
     out: Path = Path("comparisons")
     workers: int = 1
     """local backend: runs at once, each in its own process pinned to an equal share of the CPUs

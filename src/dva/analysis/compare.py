@@ -34,6 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Literal
 
+from dva.envs.registry import TARGET_RETURNS
 from dva.errors import DvaUsageError
 
 FigureName = Literal["fig4", "fig6", "fig7", "fig13", "ablation-value", "ablation-frames"]
@@ -294,7 +295,8 @@ def run_settings(
     gpus_per_run: float = 0.0,
 ) -> tuple[list[Path], str]:
     """Run (or complete) every setting × seed under ``out/runs`` for ``minutes`` each, then write
-    the curves and the table (time to ``threshold``) into ``out``. ``workers`` > 1 runs that many at
+    the curves and the table (time to ``threshold``, or else to each task's entry in
+    :data:`~dva.envs.registry.TARGET_RETURNS`) into ``out``. ``workers`` > 1 runs that many at
     once, each on its own share of the CPUs; ``backend="ray"`` runs them as Ray tasks of
     ``cpus_per_run`` CPUs and ``gpus_per_run`` GPUs. Settings come from :func:`figure_settings`
     (``dva compare``) or :func:`grid_settings` (``dva sweep``)."""
@@ -304,11 +306,13 @@ def run_settings(
         raise DvaUsageError(f"backend {backend!r} is not allowed; use one of: {', '.join(BACKENDS)}")
     groups = cpu_groups(available_cpus(), workers) if backend == "local" else []
     labels: dict[Path, str] = {}
+    thresholds: dict[str, float | None] = {}
     jobs: list[Job] = []
     for setting in settings:
         for seed in seeds:
             run_dir = out / "runs" / f"{setting.slug}_s{seed}"
             labels[run_dir] = f"{setting.label} on {setting.task}"
+            thresholds[labels[run_dir]] = threshold if threshold is not None else TARGET_RETURNS.get(setting.task)
             jobs.append(Job(setting, seed, minutes, preset, str(run_dir)))
 
     def report(job: Job, action: str) -> None:
@@ -329,7 +333,7 @@ def run_settings(
         for job in jobs:
             report(job, launched.get(job, "skipped (complete)"))
     figures = plot_runs(list(labels), out, labels=labels)
-    table, markdown = write_summary(list(labels), out, threshold=threshold, labels=labels)
+    table, markdown = write_summary(list(labels), out, threshold=thresholds, labels=labels)
     return [*figures, table, out / "summary.md"], markdown
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 from collections import defaultdict
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -76,15 +77,17 @@ def first_reach(curve: dict[str, np.ndarray], metric: str, threshold: float) -> 
 def summarize_runs(
     run_dirs: list[Path],
     metric: str = "eval_return",
-    threshold: float | None = None,
+    threshold: float | Mapping[str, float | None] | None = None,
     labels: dict[Path, str] | None = None,
 ) -> list[dict]:
     """One row per setting: seeds, final, late (each run's median over its last
     :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± std over seeds), run length, and
-    with a ``threshold`` how many seeds reached it and the median wall-clock and env steps they
-    took (NaN when none did)."""
+    with a threshold how many seeds reached it and the median wall-clock and env steps they took
+    (NaN when none did). ``threshold`` is one value for every setting or one per setting's label
+    (a label it maps to None, or lacks, is not timed)."""
     rows = []
     for label, curves in grouped_curves(run_dirs, metric, labels).items():
+        target = threshold.get(label) if isinstance(threshold, Mapping) else threshold
         final = np.array([c[metric][-1] for c in curves])
         late = np.array([np.median(c[metric][-LATE_POINTS:]) for c in curves])
         best = np.array([c[metric].max() for c in curves])
@@ -99,9 +102,10 @@ def summarize_runs(
             "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
             "env_steps": np.mean([c["env_steps"][-1] for c in curves]),
         }
-        if threshold is not None:
-            reached = [r for r in (first_reach(c, metric, threshold) for c in curves) if r is not None]
+        if target is not None:
+            reached = [r for r in (first_reach(c, metric, target) for c in curves) if r is not None]
             row.update(
+                threshold=target,
                 reached=len(reached),
                 minutes_to_threshold=np.median([r[0] for r in reached]) / 60 if reached else np.nan,
                 env_steps_to_threshold=np.median([r[1] for r in reached]) if reached else np.nan,
@@ -110,8 +114,9 @@ def summarize_runs(
     return rows
 
 
-def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> str:
-    """:func:`summarize_runs`'s rows as a markdown table."""
+def summary_markdown(rows: list[dict], metric: str) -> str:
+    """:func:`summarize_runs`'s rows as a markdown table (the threshold columns where a row has one)."""
+    timed = any("threshold" in row for row in rows)
     header = [
         "setting",
         "seeds",
@@ -121,8 +126,8 @@ def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> 
         "minutes",
         "env steps",
     ]
-    if threshold is not None:
-        header += [f"seeds ≥ {threshold:g}", "minutes to it (median)", "env steps to it (median)"]
+    if timed:
+        header += ["threshold", "seeds reaching it", "minutes to it (median)", "env steps to it (median)"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for row in rows:
         cells = [
@@ -134,12 +139,15 @@ def summary_markdown(rows: list[dict], metric: str, threshold: float | None) -> 
             f"{row['minutes']:.1f}",
             f"{row['env_steps']:.0f}",
         ]
-        if threshold is not None:
+        if "threshold" in row:
             cells += [
+                f"{row['threshold']:g}",
                 f"{row['reached']} / {row['seeds']}",
                 f"{row['minutes_to_threshold']:.1f}",
                 f"{row['env_steps_to_threshold']:.0f}",
             ]
+        elif timed:
+            cells += ["–"] * 4
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -148,7 +156,7 @@ def write_summary(
     run_dirs: list[Path],
     out_dir: Path,
     metric: str = "eval_return",
-    threshold: float | None = None,
+    threshold: float | Mapping[str, float | None] | None = None,
     labels: dict[Path, str] | None = None,
 ) -> tuple[Path, str]:
     """Write ``summary.csv`` and ``summary.md`` (:func:`summarize_runs`); returns the CSV's path and
@@ -157,10 +165,11 @@ def write_summary(
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "summary.csv"
     with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        # Every row's columns, in order: an untimed setting has no threshold columns (left empty).
+        writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
         writer.writeheader()
         writer.writerows(rows)
-    markdown = summary_markdown(rows, metric, threshold)
+    markdown = summary_markdown(rows, metric)
     (out_dir / "summary.md").write_text(markdown)
     return path, markdown
 
