@@ -151,6 +151,11 @@ def test_algorithm_and_task_lists_match_the_registries():
     tasks_page = (ROOT / "docs" / "tasks.md").read_text()
     rows = set(re.findall(r"^\| `([a-z_]+)` \|", tasks_page, re.M))
     assert rows == set(TASKS), f"docs/tasks.md's table lists {sorted(rows)}"
+    from dva.envs.registry import TARGET_RETURNS
+
+    # state obs | actions | episode | substeps | target return
+    cells = re.findall(r"^\| `([a-z_]+)` \| \d+ \| \d+ \| \d+ \| \d+ \| (\d+) \|", tasks_page, re.M)
+    assert {name: float(target) for name, target in cells} == TARGET_RETURNS, "docs/tasks.md's target returns"
 
 
 def test_docs_state_the_python_and_package_versions():

@@ -309,10 +309,11 @@ def run_settings(
     thresholds: dict[str, float | None] = {}
     jobs: list[Job] = []
     for setting in settings:
+        label = f"{setting.label} on {setting.task}"
+        thresholds[label] = threshold if threshold is not None else TARGET_RETURNS.get(setting.task)
         for seed in seeds:
             run_dir = out / "runs" / f"{setting.slug}_s{seed}"
-            labels[run_dir] = f"{setting.label} on {setting.task}"
-            thresholds[labels[run_dir]] = threshold if threshold is not None else TARGET_RETURNS.get(setting.task)
+            labels[run_dir] = label
             jobs.append(Job(setting, seed, minutes, preset, str(run_dir)))
 
     def report(job: Job, action: str) -> None:
