@@ -139,6 +139,7 @@ def test_the_docs_check_catches_a_phantom_and_a_missing_option():
 
 def test_algorithm_and_task_lists_match_the_registries():
     from dva.algorithms import ALGORITHMS
+    from dva.envs.registry import TARGET_RETURNS
     from dva.tasks import TASKS
 
     readme, cli_page = (ROOT / "README.md").read_text(), (ROOT / "docs" / "cli.md").read_text()
@@ -151,8 +152,6 @@ def test_algorithm_and_task_lists_match_the_registries():
     tasks_page = (ROOT / "docs" / "tasks.md").read_text()
     rows = set(re.findall(r"^\| `([a-z_]+)` \|", tasks_page, re.M))
     assert rows == set(TASKS), f"docs/tasks.md's table lists {sorted(rows)}"
-    from dva.envs.registry import TARGET_RETURNS
-
     # state obs | actions | episode | substeps | target return
     cells = re.findall(r"^\| `([a-z_]+)` \| \d+ \| \d+ \| \d+ \| \d+ \| (\d+) \|", tasks_page, re.M)
     assert {name: float(target) for name, target in cells} == TARGET_RETURNS, "docs/tasks.md's target returns"
