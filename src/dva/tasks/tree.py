@@ -424,14 +424,9 @@ def mass_matrix(tree: KinematicTree, qpos: jax.Array) -> jax.Array:
     """The joint-space mass matrix (nv, nv) of one environment, armature included: MJX's ``crb``
     as ``Σ_b J_bᵀ I_b J_b`` over the bodies, ``J_b`` the motion axes of the dofs that move body b."""
     frames = _frames(tree, qpos)
-    ancestors = jnp.asarray(tree.ancestors, qpos.dtype)[:, :, None]
-    # J_b (nbody, nv, 6) and I_b J_b, then one matrix product over (body, axis): a five-operand
-    # einsum left XLA transposes that cost as much as the product.
-    jacobians = ancestors * frames.cdof
-    weighted = ancestors * jnp.einsum("bkl,dl->bdk", frames.inertia, frames.cdof)
-    nbody, nv = jacobians.shape[:2]
-    flat = lambda x: jnp.swapaxes(x, 0, 1).reshape(nv, nbody * 6)  # noqa: E731
-    return flat(jacobians) @ flat(weighted).T + jnp.diag(jnp.asarray(tree.armature, qpos.dtype))
+    ancestors = jnp.asarray(tree.ancestors, qpos.dtype)
+    mass = jnp.einsum("bd,be,dk,bkl,el->de", ancestors, ancestors, frames.cdof, frames.inertia, frames.cdof)
+    return mass + jnp.diag(jnp.asarray(tree.armature, qpos.dtype))
 
 
 def integrate(tree: KinematicTree, qpos: jax.Array, qvel: jax.Array, dt: float) -> jax.Array:
