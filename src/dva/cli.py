@@ -126,9 +126,9 @@ class TrainOptions:
     """paper (the paper's hyperparameters) | cpu (fewer envs, smaller images)"""
     seed: int = 0
     iterations: int | None = None
-    """Stop after this many iterations (default: the config's lr_decay_iterations)."""
+    """Stop after this many iterations (default: the config's lr_decay_iterations); on --resume, this many more."""
     minutes: float | None = None
-    """Stop after this much wall-clock time, compilation included."""
+    """Stop after this much wall-clock time, compilation included, evaluations excluded; on --resume, this much more."""
     run_dir: Path | None = None
     """Where logs and checkpoints go (default: runs/TASK_ALGO_sSEED_TIME)."""
     resume: bool = False
