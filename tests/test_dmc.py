@@ -115,12 +115,12 @@ def test_drqv2_trains_on_dm_control_and_the_differentiable_methods_refuse_it(tmp
     from dva.algorithms import build_agent, make_config
     from dva.runner.training import train
 
-    small = dict(num_envs=2, seed_steps=8, batch_size=8, hidden=(32, 32), feature_dim=16, updates_per_iteration=1)
+    small = dict(num_envs=1, seed_steps=8, batch_size=8, hidden=(32, 32), feature_dim=16, updates_per_iteration=1, image_size=32)
     run_dir = train("dmc:cartpole-swingup", "drqv2", iterations=2, run_dir=tmp_path / "run", eval_every=2, **small)
     with (run_dir / "progress.csv").open() as f:
         rows = list(csv.DictReader(f))
     steps = [int(r["env_steps"]) for r in rows]
-    assert np.diff(steps).tolist() == [4, 4]  # 2 envs × action repeat 2 per iteration, after the seed phase
+    assert np.diff(steps).tolist() == [2, 2]  # 1 env × action repeat 2 per iteration, after the seed phase
     assert 0 < float(rows[-1]["eval_return"]) <= 1000  # dm_control's rewards: at most 1 per control step
     with pytest.raises(
         DvaUsageError, match="dva needs this project's differentiable tasks; on dmc:cartpole-swingup use: drqv2"

@@ -9,10 +9,9 @@ renders. Rendering is not differentiable, so its input passes through ``jax.lax.
 
 from __future__ import annotations
 
-import copy
-
 import jax
 import jax.numpy as jnp
+import mujoco
 from mujoco import mjx
 
 from dva.errors import DvaUsageError
@@ -94,15 +93,19 @@ class PixelRenderer:
             self._build(task, num_envs, width, height, depth, samples_per_pixel)
 
     def _build(self, task: Task, num_envs: int, width: int, height: int, depth: bool, samples_per_pixel: int) -> None:
-        # A copy whose solver may iterate: only the template's one forward pass below uses it, and
-        # with the task's single iteration Warp prints an overflow warning per contact-rich model.
-        mjm = copy.copy(task.mj_model)
-        mjm.opt.iterations = 100
+        mjm = task.mj_model
         self._camera = mjm.camera(task.camera).id
         self._warp_model = mjx.put_model(mjm, impl="warp")
-        self._template = jax.vmap(lambda _: mjx.make_data(mjm, impl="warp"))(jnp.arange(num_envs))
-        # Lights are directional and attached to the world, so the template's light poses stay valid.
-        self._template = jax.jit(jax.vmap(mjx.forward, in_axes=(None, 0)))(self._warp_model, self._template)
+        # Beyond the geom and camera poses each call sets, the renderer reads only the lights' poses.
+        # The lights are directional and attached to the world, so MuJoCo's C forward pass gives
+        # them once: no compiled Warp forward pass (≈ 20 s of kernels on a CPU) just for those.
+        lit = mujoco.MjData(mjm)
+        mujoco.mj_forward(mjm, lit)
+        template = jax.vmap(lambda _: mjx.make_data(mjm, impl="warp"))(jnp.arange(num_envs))
+        tiled = lambda x: jnp.broadcast_to(jnp.asarray(x, jnp.float32), (num_envs, *x.shape))
+        self._template = template.replace(
+            _impl=template._impl.replace(light_xpos=tiled(lit.light_xpos), light_xdir=tiled(lit.light_xdir))
+        )
         self._context = mjx.create_render_context(
             mjm=mjm,
             nworld=num_envs,
