@@ -135,6 +135,13 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     (out / "runs" / "cartpole_swingup_d_va_s0" / "complete.json").unlink()
     main([*args, "--minutes", "3"])
     assert [(c["minutes"], c["resume"]) for c in fake.calls[4:]] == [(3.0, False)]
+    # a run cut short after its budget was spent (its last row at 3 min, no completion mark) is
+    # marked complete, not resumed for zero minutes
+    done = out / "runs" / "cartpole_swingup_d_va_s0" / "complete.json"
+    done.unlink()
+    main([*args, "--minutes", "3"])
+    assert len(fake.calls) == 5 and json.loads(done.read_text())["minutes"] == 3.0
+    assert "had its minutes" in capsys.readouterr().out
 
 
 def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkeypatch):
@@ -301,9 +308,9 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
         "cartpole_swingup", "shac", iterations=1, run_dir=interrupted, checkpoint_every=1, **dict(settings[0].overrides)
     )
     try:
-        run_settings(settings, tmp_path, seeds=[0], minutes=0.1, backend="ray")
+        run_settings(settings, tmp_path, seeds=[0], minutes=0.25, backend="ray")
         first = capsys.readouterr().out
-        run_settings(settings, tmp_path, seeds=[0], minutes=0.1, backend="ray")
+        run_settings(settings, tmp_path, seeds=[0], minutes=0.25, backend="ray")
         second = capsys.readouterr().out
     finally:
         ray.shutdown()

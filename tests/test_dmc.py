@@ -115,7 +115,9 @@ def test_drqv2_trains_on_dm_control_and_the_differentiable_methods_refuse_it(tmp
     from dva.algorithms import build_agent, make_config
     from dva.runner.training import train
 
-    small = dict(num_envs=1, seed_steps=8, batch_size=8, hidden=(32, 32), feature_dim=16, updates_per_iteration=1, image_size=32)
+    small = dict(
+        num_envs=1, seed_steps=8, batch_size=8, hidden=(32, 32), feature_dim=16, updates_per_iteration=1, image_size=32
+    )
     run_dir = train("dmc:cartpole-swingup", "drqv2", iterations=2, run_dir=tmp_path / "run", eval_every=2, **small)
     with (run_dir / "progress.csv").open() as f:
         rows = list(csv.DictReader(f))

@@ -115,6 +115,7 @@ def test_reverse_pass_equals_the_mjx_reference(name):
         for a, b in zip(ours_pulled, theirs_pulled):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * float(jnp.abs(b).max()))
 
+
 def test_a_ball_joint_is_refused_by_name():
     spec = mujoco.MjSpec()
     body = spec.worldbody.add_body(name="arm")

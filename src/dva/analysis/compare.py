@@ -121,16 +121,20 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
         return "skipped (complete)"
     if (run_dir / "run.json").exists() and checkpoint_manager(run_dir).latest_step() is not None:
         logged = read_progress(run_dir)  # the minutes it has, wall_time of its last row
-        train(
-            setting.task,
-            setting.algo,
-            run_dir=run_dir,
-            resume=True,
-            eval_every=None,
-            eval_minutes=EVAL_MINUTES,
-            minutes=max(minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes, 0.0),
-        )
-        action = "resumed"
+        left = minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes
+        if left > 0:
+            train(
+                setting.task,
+                setting.algo,
+                run_dir=run_dir,
+                resume=True,
+                eval_every=None,
+                eval_minutes=EVAL_MINUTES,
+                minutes=left,
+            )
+            action = "resumed"
+        else:  # cut short after its budget was spent (before its completion mark)
+            action = "had its minutes"
     else:
         shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
         train(
