@@ -308,9 +308,9 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
         "cartpole_swingup", "shac", iterations=1, run_dir=interrupted, checkpoint_every=1, **dict(settings[0].overrides)
     )
     try:
-        run_settings(settings, tmp_path, seeds=[0], minutes=0.25, backend="ray")
+        run_settings(settings, tmp_path, seeds=[0], minutes=0.5, backend="ray")
         first = capsys.readouterr().out
-        run_settings(settings, tmp_path, seeds=[0], minutes=0.25, backend="ray")
+        run_settings(settings, tmp_path, seeds=[0], minutes=0.5, backend="ray")
         second = capsys.readouterr().out
     finally:
         ray.shutdown()
