@@ -119,36 +119,17 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
 
     if is_complete(run_dir, minutes):
         return "skipped (complete)"
+    how: dict[str, Any] | None  # train()'s arguments, or None: nothing to train
     if (run_dir / "run.json").exists() and checkpoint_manager(run_dir).latest_step() is not None:
         logged = read_progress(run_dir)  # the minutes it has, wall_time of its last row
         left = minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes
-        if left > 0:
-            train(
-                setting.task,
-                setting.algo,
-                run_dir=run_dir,
-                resume=True,
-                eval_every=None,
-                eval_minutes=EVAL_MINUTES,
-                minutes=left,
-            )
-            action = "resumed"
-        else:  # cut short after its budget was spent (before its completion mark)
-            action = "had its minutes"
+        # a run cut short after its budget was spent (before its completion mark) needs no training
+        action, how = ("resumed", dict(resume=True, minutes=left)) if left > 0 else ("had its minutes", None)
     else:
         shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
-        train(
-            setting.task,
-            setting.algo,
-            preset=preset,
-            seed=seed,
-            minutes=minutes,
-            run_dir=run_dir,
-            eval_every=None,
-            eval_minutes=EVAL_MINUTES,
-            **dict(setting.overrides),
-        )
-        action = "trained"
+        action, how = "trained", dict(preset=preset, seed=seed, minutes=minutes, **dict(setting.overrides))
+    if how is not None:
+        train(setting.task, setting.algo, run_dir=run_dir, eval_every=None, eval_minutes=EVAL_MINUTES, **how)
     (run_dir / COMPLETE).write_text(json.dumps({"minutes": minutes}))
     return action
 
