@@ -91,6 +91,31 @@ def test_episodes_end_truncated_after_1000_control_steps_and_restart():
 
 
 @needs_dm_control
+def test_frames_with_the_smaller_shadow_map_are_the_suites_but_for_shadow_edges():
+    """The adapter's environments draw shadows from a map sized for their frames (8 texels per
+    pixel, at least 512: 512² at 48², where the suite's is 2048²); the frames stay the suite's."""
+    from dva.envs.dmc import make_dmc_task
+
+    task = make_dmc_task("dmc:cartpole-swingup")
+    suite_env, small_map_env = task.load(3), task.load(3, image_size=48)
+    assert suite_env.physics.model.vis.quality.shadowsize == 2048
+    assert small_map_env.physics.model.vis.quality.shadowsize == 512
+    assert task.load(3, image_size=400).physics.model.vis.quality.shadowsize == 2048  # never above the suite's
+    frames = []
+    for env in (suite_env, small_map_env):
+        env.reset()
+        drawn = []
+        for _ in range(8):
+            for _ in range(10):
+                env.step(np.ones(1))
+            drawn.append(env.physics.render(48, 48, camera_id=task.camera).astype(int))
+        frames.append(np.stack(drawn))
+        env.physics.free()
+    differing = (frames[0] != frames[1]).any(-1).mean()
+    assert frames[0].std() > 0 and differing < 1e-3, differing
+
+
+@needs_dm_control
 def test_the_jitted_env_stacks_frames_and_evaluates_on_its_own_batch():
     from dva.envs.dmc import DMCEnv, make_dmc_task
 
