@@ -216,14 +216,11 @@ DREAMERV3_CPU = dict(
 DREAMERV3_STATE_CPU = dict(DREAMERV3_CPU, actor_lr=2e-4)
 
 
-def dreamerv3_preset(task: str, preset: str) -> dict:
-    """DreamerV3's hyperparameters under ``preset`` (task-independent)."""
-    return dict(DREAMERV3_CPU) if preset == "cpu" else {}
-
-
-def dreamerv3_state_preset(task: str, preset: str) -> dict:
-    """DreamerV3-on-the-state's hyperparameters under ``preset`` (task-independent)."""
-    return dict(DREAMERV3_STATE_CPU) if preset == "cpu" else {}
+def dreamerv3_preset(task: str, preset: str, observation: Literal["pixels", "state"] = "pixels") -> dict:
+    """DreamerV3's hyperparameters under ``preset`` for its ``observation`` (task-independent)."""
+    if preset != "cpu":
+        return {}
+    return dict(DREAMERV3_STATE_CPU if observation == "state" else DREAMERV3_CPU)
 
 
 # ---- TD-MPC2 (docs/algorithms.md) ----------------------------------------------------------------------
