@@ -98,3 +98,34 @@ def test_every_data_folder_is_a_section_the_documents_show():
     assert folders == sections
     shown = "".join((ROOT / document).read_text() for document in report.DOCUMENTS)
     assert not [name for name in sections if f"<!-- generated: {name} -->" not in shown]
+
+
+def test_a_published_curve_is_read_from_its_columns_and_drawn(tmp_path):
+    root = make_root(tmp_path)
+    folder = root / report.RESULTS / "toy"
+    (folder / "published.csv").write_text("frames,seed_1,seed_2,seed_3\n0,1,2,3\n1000,400,100,700\n")
+    toml = (folder / "section.toml").read_text()
+    (folder / "section.toml").write_text(toml.replace("[runs]", "plot = true\n[runs]"))
+    section = report.Section.load(root, "toy")
+    assert section.published_curve() is None
+    plain = {path.name: path.read_bytes() for path in section.plot()}
+    (folder / "section.toml").write_text(
+        toml.replace(
+            "[runs]",
+            'plot = true\npublished = {csv = "published.csv", x = "frames", columns = ["seed_1", "seed_2", "seed_3"], '
+            'label = "as published"}\n[runs]',
+        )
+    )
+    curve = report.Section.load(root, "toy").published_curve()
+    assert curve.label == "as published"
+    assert curve.env_steps.tolist() == [0, 1000]
+    assert curve.values.tolist() == [[1, 2, 3], [400, 100, 700]]
+    drawn = {path.name: path.read_bytes() for path in report.Section.load(root, "toy").plot()}
+    # Beside the runs against env steps only: the plot against wall-clock is unchanged.
+    assert drawn["eval_return_vs_env_steps.png"] != plain["eval_return_vs_env_steps.png"]
+    assert drawn["eval_return_vs_wall_time.png"] == plain["eval_return_vs_wall_time.png"]
+    bad = 'published = {csv = "published.csv", x = "step", columns = ["seed_1"], label = "x"}\n[runs]'
+    bad = toml.replace("[runs]", bad)
+    (folder / "section.toml").write_text(bad)
+    with pytest.raises(ValueError, match="no column 'step'"):
+        report.Section.load(root, "toy").published_curve()

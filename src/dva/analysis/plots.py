@@ -4,6 +4,7 @@ runs of the same task and algorithm (different seeds) drawn as mean ± std."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from collections import defaultdict
 from collections.abc import Mapping
@@ -182,9 +183,26 @@ def plot_runs(
     return plot_curves(grouped_curves(run_dirs, metric, labels), out_dir, metric)
 
 
-def plot_curves(groups: dict[str, list[dict[str, np.ndarray]]], out_dir: Path, metric: str) -> list[Path]:
+@dataclasses.dataclass(frozen=True)
+class PublishedCurve:
+    """A curve its authors published, per env step: ``values`` (points × columns) holds either their
+    seeds or their lowest, median and highest seed; it is drawn as the median of the columns
+    (dashed) within their range."""
+
+    label: str
+    env_steps: np.ndarray
+    values: np.ndarray
+
+
+def plot_curves(
+    groups: dict[str, list[dict[str, np.ndarray]]],
+    out_dir: Path,
+    metric: str,
+    published: PublishedCurve | None = None,
+) -> list[Path]:
     """Plot each group of curves (the seeds of a setting) as its mean ± std against env steps and
-    against wall-clock, one PNG each; returns their paths."""
+    against wall-clock, one PNG each, ``published`` beside them against env steps; returns their
+    paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for x_key, x_label in AXES.items():
@@ -195,6 +213,10 @@ def plot_curves(groups: dict[str, list[dict[str, np.ndarray]]], out_dir: Path, m
             (line,) = ax.plot(x, mean, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
             if len(curves) > 1:
                 ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.25)
+        if published is not None and x_key == "env_steps":
+            x, values = published.env_steps, published.values
+            (line,) = ax.plot(x, np.median(values, axis=1), "--", color="0.3", label=published.label)
+            ax.fill_between(x, values.min(axis=1), values.max(axis=1), color=line.get_color(), alpha=0.15)
         ax.set_xlabel(x_label)
         ax.set_ylabel(metric.replace("_", " "))
         ax.grid(alpha=0.3)

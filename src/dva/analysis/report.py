@@ -12,6 +12,8 @@ made and what to show::
     configs = [["hopper", "dva", "cpu"]]    # ... and the configs (task, algo, preset)
     fingerprint = "…"                       # their hash when measured (`dva report --stamp`)
     plot = true                             # draw the runs' curves (return vs env steps and time)
+    published = {csv = "published.csv", x = "frames", columns = ["lowest", "median", "highest"], label = "…"}
+                                            # the authors' curve beside them (their seeds' median and range)
 
     [runs]                                  # setting → its runs' CSV files, one per seed
     "D.Va" = ["hopper_dva_s0.csv", "hopper_dva_s1.csv"]
@@ -45,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from dva.analysis.bench import markdown_table
-from dva.analysis.plots import LATE_POINTS
+from dva.analysis.plots import LATE_POINTS, PublishedCurve, plot_curves
 from dva.errors import DvaUsageError
 
 RESULTS = Path("docs/results")
@@ -275,8 +277,6 @@ class Section:
         return "\n".join(lines) + "\n" + "".join("\n" + table for table in self.tables())
 
     def plot(self) -> list[Path]:
-        from dva.analysis.plots import plot_curves
-
         curves = {
             setting: [
                 {"eval_return": run.eval_return, "env_steps": run.env_steps, "wall_time": run.wall_time}
@@ -284,7 +284,19 @@ class Section:
             ]
             for setting in self.meta.get("runs", {})
         }
-        return plot_curves(curves, self.folder, "eval_return")
+        return plot_curves(curves, self.folder, "eval_return", self.published_curve())
+
+    def published_curve(self) -> PublishedCurve | None:
+        """The authors' curve that ``published`` names (its x column and its seeds' columns), if any."""
+        if "published" not in self.meta:
+            return None
+        spec = self.meta["published"]
+        rows = csv_rows(self.folder / spec["csv"])
+        return PublishedCurve(
+            spec["label"],
+            np.array([float(csv_field(row, spec["x"])) for row in rows]),
+            np.array([[float(csv_field(row, column)) for column in spec["columns"]] for row in rows]),
+        )
 
 
 def placeholder(root: Path, text: str) -> str:
