@@ -5,8 +5,10 @@ that writes a run's files, so no compilation)."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
+import shutil
 import sys
 import threading
 import time
@@ -15,6 +17,7 @@ import pytest
 
 import dva.analysis.compare as compare_module
 import dva.runner.training
+from dva.algorithms import make_config
 from dva.analysis.compare import Job, cpu_groups, figure_settings, grid_settings, launch_pinned, run_parallel
 from dva.cli import main
 
@@ -30,8 +33,10 @@ class FakeTraining:
         self.calls.append(dict(task=task, algo=algo, run_dir=run_dir, minutes=minutes, resume=resume, **overrides))
         run_dir.mkdir(parents=True, exist_ok=True)
         if not resume:
+            options = {key: value for key, value in overrides.items() if key not in ("eval_every", "eval_minutes")}
+            config = dataclasses.asdict(make_config(task, algo, preset, **options))
             (run_dir / "run.json").write_text(
-                json.dumps({"task": task, "algo": algo, "preset": preset, "seed": seed, "config": overrides})
+                json.dumps({"task": task, "algo": algo, "preset": preset, "seed": seed, "config": config})
             )
             (run_dir / "progress.csv").write_text("env_steps,wall_time,eval_return,train_return\n0,0,0,nan\n")
         with (run_dir / "progress.csv").open() as f:
@@ -67,6 +72,14 @@ def test_figures_compare_the_paper_settings():
         ("dva", ()),
         ("dva", (("use_critic", False),)),
     ]
+    # an ablation of the privileged variant: its one algo in every setting, named in every label
+    privileged = figure_settings("ablation-frames", ["hopper"], frames=[1, 3], algos=["dva-privileged"])
+    assert [(s.algo, s.label) for s in privileged] == [
+        ("dva-privileged", "dva-privileged, 1 frame"),
+        ("dva-privileged", "dva-privileged, 3 frames"),
+    ]
+    with pytest.raises(ValueError, match="not allowed for ablation-value; use one of: dva, dva-privileged"):
+        figure_settings("ablation-value", ["hopper"], algos=["dva", "drqv2"])
     assert [dict(s.overrides)["frame_stack"] for s in figure_settings("ablation-frames", ["hopper"])] == [
         1,
         2,
@@ -90,8 +103,8 @@ def test_figures_compare_the_paper_settings():
     with pytest.raises(ValueError, match="figure 'fig5' is not allowed"):
         figure_settings("fig5", ["hopper"])
     assert [s.label for s in figure_settings("ablation-frames", ["hopper"], frames=[1, 3])] == [
-        "D.Va, 1 frame",
-        "D.Va, 3 frames",
+        "dva, 1 frame",
+        "dva, 3 frames",
     ]
     for bad in ([], [0, 3], [2, 2], [1.5]):
         with pytest.raises(ValueError, match=r"frames = \[.*\] is not allowed; use distinct ints ≥ 1"):
@@ -107,6 +120,40 @@ def test_figures_compare_the_paper_settings():
             ValueError, match=r"algos = \[.*\] is not allowed for fig4; use distinct names from: dva, drqv2"
         ):
             figure_settings("fig4", ["hopper"], algos=bad)
+    # the privileged variants only where asked for, after the paper's methods
+    assert [
+        s.algo for s in figure_settings("fig4", ["hopper"], algos=["drqv2-privileged", "dva", "dva-privileged"])
+    ] == [
+        "dva",
+        "drqv2-privileged",
+        "dva-privileged",
+    ]
+    with pytest.raises(ValueError, match="not allowed for fig13"):
+        figure_settings("fig13", ["hopper"], algos=["dva-privileged"])
+
+
+def test_compare_refuses_a_run_folder_of_another_setting(fake, tmp_path, capsys):
+    """A run trained under other settings (here: dva with the state-prediction loss, as its CPU
+    preset once had it on the legged robots) is not reused as a dva run: the error names what
+    differs; the same folder serves the setting it was trained for."""
+    args = ["compare", "fig4", "--tasks", "hopper", "--seeds", "0", "--out", str(tmp_path), "--minutes", "1"]
+    main([*args, "--algos", "dva-privileged"])
+    runs = tmp_path / "fig4" / "runs"
+    shutil.copytree(runs / "hopper_dva_privileged_s0", runs / "hopper_dva_s0")
+    spec = json.loads((runs / "hopper_dva_s0" / "run.json").read_text())
+    (runs / "hopper_dva_s0" / "run.json").write_text(json.dumps(dict(spec, algo="dva")))  # as written then
+    capsys.readouterr()
+    for options, expected in (
+        (["--algos", "dva"], "algo dva-privileged (wanted dva), state_prediction 10.0 (wanted 0.0)"),
+        (["--algos", "dva-privileged", "--preset", "paper"], "num_envs 16 (wanted 64)"),
+    ):
+        with pytest.raises(SystemExit):
+            main([*args, *options])
+        error = capsys.readouterr().err
+        assert "holds a run of another setting" in error and expected in error
+    calls = len(fake.calls)
+    main([*args, "--algos", "dva-privileged"])  # its own setting: complete, skipped
+    assert len(fake.calls) == calls
 
 
 def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
@@ -120,24 +167,24 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     assert all((c["eval_every"], c["eval_minutes"]) == (None, 1.0) for c in fake.calls)
     out = tmp_path / "ablation-value"
     summary = {row["setting"]: row for row in csv.DictReader((out / "summary.csv").open())}
-    assert float(summary["D.Va on cartpole_swingup"]["final_mean"]) == 200.0
-    assert summary["D.Va on cartpole_swingup"]["reached"] == "1"
-    assert float(summary["D.Va without critic on cartpole_swingup"]["final_mean"]) == 20.0
+    assert float(summary["dva on cartpole_swingup"]["final_mean"]) == 200.0
+    assert summary["dva on cartpole_swingup"]["reached"] == "1"
+    assert float(summary["dva without critic on cartpole_swingup"]["final_mean"]) == 20.0
     assert (out / "eval_return_vs_wall_time.png").exists() and (out / "summary.md").exists()
-    assert "D.Va without critic on cartpole_swingup" in capsys.readouterr().out
+    assert "dva without critic on cartpole_swingup" in capsys.readouterr().out
 
     main([*args, "--minutes", "2"])  # everything already done
     assert len(fake.calls) == 2
     main([*args, "--minutes", "3"])  # one minute more each, from the checkpoints
     assert [(c["minutes"], c["resume"]) for c in fake.calls[2:]] == [(1.0, True), (1.0, True)]
     # a run that died before its first checkpoint starts again from scratch
-    (out / "runs" / "cartpole_swingup_d_va_s0" / "checkpoint").unlink()
-    (out / "runs" / "cartpole_swingup_d_va_s0" / "complete.json").unlink()
+    (out / "runs" / "cartpole_swingup_dva_s0" / "checkpoint").unlink()
+    (out / "runs" / "cartpole_swingup_dva_s0" / "complete.json").unlink()
     main([*args, "--minutes", "3"])
     assert [(c["minutes"], c["resume"]) for c in fake.calls[4:]] == [(3.0, False)]
     # a run cut short after its budget was spent (its last row at 3 min, no completion mark) is
     # marked complete, not resumed for zero minutes
-    done = out / "runs" / "cartpole_swingup_d_va_s0" / "complete.json"
+    done = out / "runs" / "cartpole_swingup_dva_s0" / "complete.json"
     done.unlink()
     main([*args, "--minutes", "3"])
     assert len(fake.calls) == 5 and json.loads(done.read_text())["minutes"] == 3.0
@@ -152,7 +199,7 @@ def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkey
     main(["compare", "ablation-value", *tasks, "--seeds", "0", "--minutes", "6", "--out", str(tmp_path)])
     out = tmp_path / "ablation-value"
     summary = {row["setting"]: row for row in csv.DictReader((out / "summary.csv").open())}
-    cartpole, hopper = summary["D.Va on cartpole_swingup"], summary["D.Va on hopper"]
+    cartpole, hopper = summary["dva on cartpole_swingup"], summary["dva on hopper"]
     # the fake's D.Va earns 100 per minute: 550 first reached at 6 minutes, 3000 never
     assert (float(cartpole["threshold"]), cartpole["reached"], float(cartpole["minutes_to_threshold"])) == (
         550.0,
@@ -160,10 +207,10 @@ def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkey
         6.0,
     )
     assert (float(hopper["threshold"]), hopper["reached"]) == (3000.0, "0")
-    assert summary["D.Va on quadruped"]["threshold"] == "" and summary["D.Va on quadruped"]["reached"] == ""
+    assert summary["dva on quadruped"]["threshold"] == "" and summary["dva on quadruped"]["reached"] == ""
     markdown = (out / "summary.md").read_text()
     assert "| threshold | seeds reaching it |" in markdown
-    assert [line for line in markdown.splitlines() if line.startswith("| D.Va on quadruped ")][0].endswith(
+    assert [line for line in markdown.splitlines() if line.startswith("| dva on quadruped ")][0].endswith(
         "| – | – | – | – |"
     )
 
@@ -188,8 +235,8 @@ def test_compare_frames_trains_only_the_stacks_asked_for(fake, tmp_path):
     )
     assert [(c["task"], c["frame_stack"]) for c in fake.calls] == [("hopper", 1), ("hopper", 3)]
     assert sorted(p.name for p in (tmp_path / "ablation-frames" / "runs").iterdir()) == [
-        "hopper_d_va_1_frame_s0",
-        "hopper_d_va_3_frames_s0",
+        "hopper_dva_1_frame_s0",
+        "hopper_dva_3_frames_s0",
     ]
 
 
@@ -279,14 +326,14 @@ def test_compare_with_workers_runs_every_job_once(fake, tmp_path, monkeypatch, c
     ]
     main(args)
     assert sorted((c["run_dir"].name, c["minutes"]) for c in fake.calls) == [
-        ("cartpole_swingup_d_va_s0", 2.0),
-        ("cartpole_swingup_d_va_s1", 2.0),
-        ("cartpole_swingup_d_va_without_critic_s0", 2.0),
-        ("cartpole_swingup_d_va_without_critic_s1", 2.0),
+        ("cartpole_swingup_dva_s0", 2.0),
+        ("cartpole_swingup_dva_s1", 2.0),
+        ("cartpole_swingup_dva_without_critic_s0", 2.0),
+        ("cartpole_swingup_dva_without_critic_s1", 2.0),
     ]
     assert set(launched) <= {(0,), (1,)}
     summary = {row["setting"]: row for row in csv.DictReader((tmp_path / "ablation-value" / "summary.csv").open())}
-    assert summary["D.Va on cartpole_swingup"]["seeds"] == "2"
+    assert summary["dva on cartpole_swingup"]["seeds"] == "2"
     main(args)  # all complete: nothing launched again
     assert len(fake.calls) == 4 and "skipped (complete)" in capsys.readouterr().out
 
@@ -307,6 +354,13 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
     train(
         "cartpole_swingup", "shac", iterations=1, run_dir=interrupted, checkpoint_every=1, **dict(settings[0].overrides)
     )
+    # Its clock as if interrupted one second in, however long this machine took to compile it.
+    progress = interrupted / "progress.csv"
+    logged = list(csv.DictReader(progress.open()))
+    with progress.open("w", newline="") as f:
+        out = csv.DictWriter(f, fieldnames=list(logged[0]))
+        out.writeheader()
+        out.writerows([dict(row, wall_time=str(min(float(row["wall_time"]), 1.0))) for row in logged])
     try:
         run_settings(settings, tmp_path, seeds=[0], minutes=0.5, backend="ray")
         first = capsys.readouterr().out

@@ -27,10 +27,12 @@ def test_shift_images_is_pixel_exact():
     np.testing.assert_array_equal(shift(2, 0), original[np.minimum(rows + 1, 3), np.maximum(cols - 1, 0)])
 
 
-def steps_from(rewards, terminated=(), truncated=(), first=()) -> Step:
-    """One sampled sequence (L steps) with frame t filled with the value t + 1."""
+def steps_from(rewards, terminated=(), truncated=(), first=(), state=False) -> Step:
+    """One sampled sequence (L steps) with frame t filled with the value t + 1 (and with ``state``
+    a state vector [t + 1, −(t + 1)])."""
     length = len(rewards)
     flag = lambda where: jnp.array([t in where for t in range(length)])
+    states = jnp.arange(1, length + 1, dtype=jnp.float32)[:, None] * jnp.array([1.0, -1.0])
     return Step(
         frame=jnp.broadcast_to(jnp.arange(1, length + 1, dtype=jnp.uint8)[:, None, None, None], (length, 2, 2, 3)),
         first=flag(first),
@@ -38,6 +40,7 @@ def steps_from(rewards, terminated=(), truncated=(), first=()) -> Step:
         reward=jnp.asarray(rewards, jnp.float32),
         terminated=flag(terminated),
         truncated=flag(truncated),
+        state=states if state else None,
     )
 
 
@@ -54,6 +57,8 @@ def test_n_step_transition_against_hand_computed_returns():
     assert not bool(timed_out.valid)
     earlier = replay.transition(steps_from(rewards, terminated={1}, truncated={0}))  # before o_t: irrelevant
     assert float(earlier.reward) == running.reward and bool(earlier.valid)
+    assert running.state is None  # kept only for a privileged agent: then o_t's own
+    np.testing.assert_array_equal(replay.transition(steps_from(rewards, state=True)).state, [3.0, -3.0])
 
 
 def test_frame_stacks_rebuilt_from_single_frames_match_the_wrapper():
@@ -150,3 +155,53 @@ def test_replay_stores_rewards_times_reward_scale(small_agent):
     np.testing.assert_allclose(stored, 0.5 * np.asarray(after.env.reward), rtol=1e-6)
     # the logged episode returns stay in the task's units
     np.testing.assert_allclose(after.episode_return + finished, state.episode_return + after.env.reward, rtol=1e-6)
+
+
+def test_drqv2_privileged_adds_the_weighted_state_error_to_the_encoders_loss():
+    """drqv2-privileged: its replay keeps each observation's state (the env's own), its encoder and
+    state head learn ``weight ·`` the mean squared error of the head's prediction of the state
+    normalised by the replayed states' running statistics — the reported loss, computed here by
+    hand from the learner before the update — and the gradient of that term reaches the encoder
+    on top of the critic's."""
+    weight = 3.0
+    agent, previous, state, metrics = small_off_policy_agent(
+        "drqv2-privileged", 6, seed_steps=32, updates_per_iteration=1, state_prediction=weight
+    )
+    assert agent.keeps_state and "state_prediction_loss" in agent.metric_names
+    after, _ = jax.jit(agent.collect)(state, jnp.zeros((4, 1)))
+    stored = after.replay.experience.state[:, after.replay.current_index - 1]
+    np.testing.assert_array_equal(stored, state.env.obs)  # the state of the observation acted in
+
+    learner = previous.learner
+    batch = agent.replay.sample(previous.replay, jax.random.PRNGKey(5))
+    pixels = batch.obs.astype(jnp.float32)  # any observations: the identity holds for all
+    stats = learner.state_stats.update(batch.state)
+    target = (batch.state - stats.mean) / jnp.sqrt(stats.var + 1e-5)
+
+    def by_hand(params):
+        features = agent.encoder.apply(params["encoder"], pixels)
+        return weight * jnp.mean(
+            (
+                features @ params["state_head"]["params"]["kernel"]
+                + params["state_head"]["params"]["bias"]
+                - jnp.clip(target, -5, 5)
+            )
+            ** 2
+        )
+
+    auxiliary = agent.state_prediction_loss(stats, batch.state)
+    features = agent.encoder.apply(learner.params["encoder"], pixels)
+    assert float(auxiliary(learner.params, features)) == pytest.approx(float(by_hand(learner.params)), rel=1e-5)
+    weights = jnp.ones(len(batch.reward)) / len(batch.reward)
+    fit = jax.jit(
+        lambda extra: agent.fit_critic(
+            learner.params, learner.critic_opt_state, pixels, batch.action, batch.reward, weights, extra
+        ),
+        static_argnums=0,
+    )
+    plain, with_state = fit(None), fit(auxiliary)
+    assert float(with_state[2]) == pytest.approx(float(plain[2]), rel=1e-6)  # the critic's loss alone
+    assert float(with_state[5]) == pytest.approx(float(by_hand(learner.params)), rel=1e-5)
+    moved = np.abs(np.asarray(jax.tree.leaves(with_state[0]["encoder"])[0] - jax.tree.leaves(plain[0]["encoder"])[0]))
+    assert moved.max() > 0  # the state's error reaches the encoder
+    assert np.isfinite(metrics["state_prediction_loss"]) and metrics["state_prediction_loss"] > 0

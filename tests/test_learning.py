@@ -55,11 +55,11 @@ def test_dva_on_cartpole_pixels_beats_random_by_a_wide_margin(tmp_path):
     assert end_eval_return(run_dir) > 3 * random_return("cartpole_swingup")
 
 
-def test_dva_on_hopper_pixels_learns_to_hop(tmp_path):
-    """D.Va from 48² pixels on Hopper, CPU preset (state-prediction loss on): 20 minutes. Two runs
-    on one core each (docs/results.md) first passed 3000 at 17.1 and 10.6 minutes and held above it
-    (medians of their last ten 3462 and 3437)."""
-    run_dir = train("hopper", "dva", preset="cpu", minutes=20, run_dir=tmp_path / "run", eval_every=100)
+def test_dva_privileged_on_hopper_pixels_learns_to_hop(tmp_path):
+    """dva-privileged (D.Va with the state-prediction loss) from 48² pixels on Hopper, CPU preset:
+    20 minutes. Two runs on one core each (docs/results.md) first passed 3000 at 17.1 and 10.6
+    minutes and held above it (medians of their last ten 3462 and 3437)."""
+    run_dir = train("hopper", "dva-privileged", preset="cpu", minutes=20, run_dir=tmp_path / "run", eval_every=100)
     assert end_eval_return(run_dir) > 2000
 
 

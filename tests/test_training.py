@@ -8,6 +8,7 @@ import functools
 import json
 import shutil
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -151,16 +152,28 @@ def test_cpu_preset_gives_pixel_actors_a_longer_decay():
     assert make_config("hopper", "dva", "cpu", lr_decay_iterations=50).lr_decay_iterations == 50
 
 
-def test_cpu_preset_gives_dva_the_state_prediction_loss_on_the_legged_robots():
-    """On for D.Va's pixel actor on every legged robot; off on the state, for visual SHAC (whose
-    gradient passes through the pixels: the loss is not allowed there), on Cart-pole and in the
-    paper's preset."""
+def test_dva_is_the_papers_method_and_the_privileged_variants_add_the_state_prediction_loss():
+    """dva never has the state-prediction loss (under any preset, and no flag turns it on);
+    dva-privileged and drqv2-privileged have it at the same weight on every task and preset, and
+    only a positive weight; the rest of their configs are dva's and drqv2's."""
     weight = lambda task, algo, preset="cpu": make_config(task, algo, preset).state_prediction
-    legged = ("hopper", "cheetah", "ant", "humanoid", "quadruped")
-    assert [weight(task, "dva") for task in legged] == [10.0] * 5
-    assert weight("hopper", "shac") == weight("ant", "shac-pixels") == weight("cartpole_swingup", "dva") == 0.0
-    assert weight("hopper", "dva", "paper") == 0.0
-    assert make_config("hopper", "dva", "cpu", state_prediction=0.0).state_prediction == 0.0
+    tasks = ("cartpole_swingup", "hopper", "cheetah", "ant", "humanoid", "quadruped")
+    for preset in ("cpu", "paper"):
+        assert [weight(task, "dva", preset) for task in tasks] == [0.0] * 6
+        assert [weight(task, "drqv2", preset) for task in tasks] == [0.0] * 6
+        assert [weight(task, "dva-privileged", preset) for task in tasks] == [10.0] * 6
+        assert [weight(task, "drqv2-privileged", preset) for task in tasks] == [10.0] * 6
+        for plain in ("dva", "drqv2"):
+            extended = dataclasses.replace(make_config("hopper", f"{plain}-privileged", preset), state_prediction=0.0)
+            assert extended == make_config("hopper", plain, preset)
+    assert weight("hopper", "shac") == weight("ant", "shac-pixels") == 0.0
+    with pytest.raises(ValueError, match="state_prediction = 1.0 is not allowed for dva; .*--algo dva-privileged"):
+        make_config("hopper", "dva", "cpu", state_prediction=1.0)
+    with pytest.raises(
+        ValueError, match="state_prediction = 0.0 is not allowed for drqv2-privileged; use a number > 0"
+    ):
+        make_config("hopper", "drqv2-privileged", "cpu", state_prediction=0.0)
+    assert make_config("hopper", "dva-privileged", "cpu", state_prediction=2.0).state_prediction == 2.0
 
 
 def test_configs_from_older_runs_load_under_the_new_field_names():
@@ -323,3 +336,23 @@ def test_track_logs_config_curve_and_video_to_wandb_offline(tmp_path, monkeypatc
     train("cartpole_swingup", iterations=1, run_dir=run_dir, resume=True, eval_every=None, tracker=tracker)
     assert tracker.run.id == run_id
     tracker.finish()
+
+
+def test_a_run_written_by_version_0_2_0_resumes_under_the_variant_it_trained(tmp_path):
+    """tests/fixtures/dva_run_0.2.0: a run of version 0.2.0 (its run.json, Orbax checkpoint and
+    progress.csv as that version wrote them), D.Va with the state-prediction loss, which was then
+    the algorithm ``dva``. It resumes as dva-privileged from its checkpoint, and progress.csv keeps
+    its columns and rows."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(Path(__file__).parent / "fixtures" / "dva_run_0.2.0", run_dir)
+    header = (run_dir / "progress.csv").read_text().splitlines()[0]
+    before = rows(run_dir)
+    with pytest.raises(ValueError, match="holds a dva-privileged run on cartpole_swingup, not dva"):
+        train("cartpole_swingup", "dva", run_dir=run_dir, resume=True, iterations=1)
+    train("cartpole_swingup", run_dir=run_dir, resume=True, iterations=1, eval_every=1)
+    assert json.loads((run_dir / "run.json").read_text())["algo"] == "dva"  # the file is left as written
+    spec, _, state = load_run(run_dir)
+    assert (spec.algo, spec.config.state_prediction, int(state.iteration)) == ("dva-privileged", 10.0, 3)
+    assert (run_dir / "progress.csv").read_text().splitlines()[0] == header
+    after = rows(run_dir)
+    assert after[:3] == before and after[3]["iteration"] == "3" and float(after[3]["state_prediction_loss"]) > 0

@@ -103,13 +103,10 @@ SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {
     "humanoid": dict(lr_decay_iterations=14000),
     **{task: dict(lr_decay_iterations=4500) for task in ("cartpole_swingup", "cartpole_balance")},
 }
-# D.Va's actor learns to read the pose from the frames far sooner when its encoder also predicts
-# the simulator's state (an auxiliary loss; the return's gradient still never passes through the
-# pixels): on Hopper ≥ 3000 after ≈ 0.2M env steps instead of 0.67–0.77M, on the Ant ≥ 1500 at 51–62
-# minutes where it stayed below in two hours, on the Humanoid 5× random after 205k env steps
-# instead of 486k (docs/results.md). Measured on those three; the Cheetah and the quadruped, legged
-# robots too, take it with them. Cart-pole keeps it off (its actor learns the pose without it).
-DVA_CPU_TASKS: dict[str, dict] = {task: dict(state_prediction=10.0) for task in LEGGED_TASKS}
+# The privileged variants (`dva-privileged`, `drqv2-privileged`): the pixel encoder also learns to
+# predict the normalised simulator state, at this weight under every preset and on every task
+# (docs/algorithms.md; its effect on D.Va: docs/results.md#hopper-from-pixels).
+STATE_PREDICTION_WEIGHT = 10.0
 
 
 # ---- the off-policy pixel baselines (DrQ-v2, CURL) -----------------------------------------------
@@ -283,6 +280,9 @@ def shac_preset(task: str, preset: str, actor_input: ActorInput = "state") -> di
     if preset == "cpu":
         per_task = SHAC_CPU_TASKS if actor_input == "state" else SHAC_CPU_PIXEL_TASKS
         values.update(SHAC_CPU, **per_task.get(task, {}))
-        if actor_input == "pixels":
-            values.update(DVA_CPU_TASKS.get(task, {}))
     return values
+
+
+def privileged(preset_values: dict) -> dict:
+    """A preset's values with the state-prediction loss on (the ``-privileged`` variants)."""
+    return dict(preset_values, state_prediction=STATE_PREDICTION_WEIGHT)

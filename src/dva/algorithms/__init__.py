@@ -28,6 +28,7 @@ from dva.configs import (
     dagger_preset,
     dreamerv3_preset,
     drqv2_preset,
+    privileged,
     shac_preset,
     tdmpc2_preset,
 )
@@ -59,6 +60,10 @@ class Algorithm:
     # algorithms sharing a config class share a group. `flag_aliases` gives some a short flag too.
     flag_group: str = ""
     flag_aliases: dict[str, str] = dataclasses.field(default_factory=dict)
+    # The algorithm to use for another value of a defining field (named in the error).
+    alternatives: dict[str, str] = dataclasses.field(default_factory=dict)
+    # Fields whose value must be > 0 (what makes a `-privileged` variant one).
+    positive: tuple[str, ...] = ()
 
 
 def _shac_renderer(config: SHACConfig) -> RendererKind:
@@ -77,14 +82,26 @@ TDMPC2_HINT = "a lower learning rate (--tdmpc2.lr) or gradient clip (--tdmpc2.gr
 SHAC_HINT = "a lower learning rate (--shac.actor-lr), a shorter horizon (--shac.horizon) or --shac.state-grad-clip"
 ALGORITHMS: dict[str, Algorithm] = {
     "dva": Algorithm(
-        "D.Va: actor on pixels, gradient decoupled from the observation",
+        "D.Va, the paper's method: actor on pixels, gradient decoupled from the observation",
         SHACConfig,
         SHAC,
         lambda task, preset: shac_preset(task, preset, "pixels"),
+        dict(observation="pixels", gradient="decoupled", state_prediction=0.0),
+        _shac_renderer,
+        divergence_hint=SHAC_HINT,
+        flag_group="shac",
+        alternatives=dict(state_prediction="dva-privileged", gradient="shac-pixels", observation="shac"),
+    ),
+    "dva-privileged": Algorithm(
+        "D.Va whose pixel encoder also learns to predict the simulator's state (an extension)",
+        SHACConfig,
+        SHAC,
+        lambda task, preset: privileged(shac_preset(task, preset, "pixels")),
         dict(observation="pixels", gradient="decoupled"),
         _shac_renderer,
         divergence_hint=SHAC_HINT,
         flag_group="shac",
+        positive=("state_prediction",),
     ),
     "shac": Algorithm(
         "SHAC: actor on the state, full gradient",
@@ -121,10 +138,22 @@ ALGORITHMS: dict[str, Algorithm] = {
         DrQV2Config,
         DrQV2,
         drqv2_preset,
+        dict(state_prediction=0.0),
+        lambda config: "warp",
+        divergence_hint="a lower learning rate (--drqv2.lr)",
+        flag_group="drqv2",
+        alternatives=dict(state_prediction="drqv2-privileged"),
+    ),
+    "drqv2-privileged": Algorithm(
+        "DrQ-v2 whose encoder also learns to predict the simulator's state (as dva-privileged's)",
+        DrQV2Config,
+        DrQV2,
+        lambda task, preset: privileged(drqv2_preset(task, preset)),
         {},
         lambda config: "warp",
         divergence_hint="a lower learning rate (--drqv2.lr)",
         flag_group="drqv2",
+        positive=("state_prediction",),
     ),
     "curl": Algorithm(
         "CURL: SAC from pixels with a contrastive auxiliary loss",
@@ -225,15 +254,20 @@ def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
     fields = {field.name for field in dataclasses.fields(entry.config_type)}
     for key in overrides:
         if key in entry.defining:
+            other = f"; for another, --algo {entry.alternatives[key]}" if key in entry.alternatives else ""
             raise DvaUsageError(
                 f"{key} = {overrides[key]!r} is not allowed for {algo}; use {entry.defining[key]!r} "
-                f"({key!r} defines the algorithm {algo!r})"
+                f"({key!r} defines the algorithm {algo!r}{other})"
             )
         if key not in fields:
             raise DvaUsageError(
                 f"unknown {algo} config field {key!r}; allowed: {', '.join(sorted(fields - set(entry.defining)))}"
             )
-    return entry.config_type(**{**entry.preset(task, preset), **entry.defining, **overrides})
+    config = entry.config_type(**{**entry.preset(task, preset), **entry.defining, **overrides})
+    for key in entry.positive:
+        if not getattr(config, key) > 0:
+            raise DvaUsageError(f"{key} = {getattr(config, key)!r} is not allowed for {algo}; use a number > 0")
+    return config
 
 
 def config_from_dict(algo: str, values: dict) -> Any:
@@ -244,6 +278,17 @@ def config_from_dict(algo: str, values: dict) -> Any:
         renamed.get(key, key): tuple(value) if isinstance(value, list) else value for key, value in values.items()
     }
     return config_type(**values)
+
+
+def saved_algo(algo: str, config: Any) -> str:
+    """The registry entry a saved run of ``algo`` with ``config`` belongs to now: where the config
+    differs from a defining value that another entry takes (a ``dva`` run written when D.Va's CPU
+    preset carried the state-prediction loss), that entry."""
+    entry = check_algo(algo)
+    for key, value in entry.defining.items():
+        if getattr(config, key) != value and key in entry.alternatives:
+            return entry.alternatives[key]
+    return algo
 
 
 def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int, mesh=None) -> Renderer | None:

@@ -147,7 +147,7 @@ class CURL(OffPolicyAgent):
         )
         soft_target = jax.lax.stop_gradient(batch.reward + batch.discount * (target_q - alpha * next_log_prob))
 
-        trained, opt["critic"], c_loss, features, q1 = self.fit_critic(
+        trained, opt["critic"], c_loss, features, q1, _ = self.fit_critic(
             params, opt["critic"], obs, batch.action, soft_target, weight
         )
         params.update(trained)

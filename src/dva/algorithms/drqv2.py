@@ -10,12 +10,18 @@ actor's action plus Gaussian noise whose std decays linearly); each update on a 
 * actor: ``−min(Q₁, Q₂)(f, π(f) + clip(σε, ±c))`` on the critic's features, detached (the encoder
   learns from the critic only);
 * target critic: Polyak average with rate ``target_tau``.
+
+With ``state_prediction`` > 0 (``drqv2-privileged``) the encoder also learns to predict the
+normalised simulator state through a linear head on its features, as ``dva-privileged``'s does:
+that weight × the mean squared error is added to the critic's loss, the state normalised by running
+statistics of the replayed states.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import optax
@@ -25,7 +31,8 @@ from dva.algorithms.augmentation import random_shift
 from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig
 from dva.algorithms.replay import NStepBatch
 from dva.envs.observations import Observation, PixelObservations
-from dva.networks import DeterministicActor, TwinQ
+from dva.errors import DvaUsageError
+from dva.networks import DeterministicActor, RunningStats, TwinQ
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,6 +48,16 @@ class DrQV2Config(OffPolicyConfig):
     std_end: float = 0.1
     std_decay_steps: int = 500_000  # env (control) steps over which exploration std decays linearly
     std_clip: float = 0.3  # the noise added to the actor's action in the losses is clipped to ±this
+    state_prediction: float = 0.0
+    """Weight of the auxiliary loss that makes the encoder predict the normalised simulator state
+    (the mean over the batch and state dimensions of the squared error, through a linear head on
+    the encoder's features), added to the critic's; the replay then keeps each observation's state.
+    0: DrQ-v2's loss."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.state_prediction >= 0:
+            raise DvaUsageError(f"state_prediction = {self.state_prediction!r} is not allowed; use a number ≥ 0")
 
 
 class DrQV2Learner(struct.PyTreeNode):
@@ -48,8 +65,9 @@ class DrQV2Learner(struct.PyTreeNode):
 
     params: dict  # {"encoder", "actor", "critic"}
     target_critic: dict
-    critic_opt_state: optax.OptState  # encoder and critic together
+    critic_opt_state: optax.OptState  # encoder and critic (and the state head) together
     actor_opt_state: optax.OptState
+    state_stats: RunningStats | None = None  # of the replayed states (the privileged variant only)
 
 
 def clipped_noise_action(mean: jax.Array, std: jax.Array, clip: float, key: jax.Array) -> jax.Array:
@@ -62,7 +80,7 @@ def clipped_noise_action(mean: jax.Array, std: jax.Array, clip: float, key: jax.
 class DrQV2(OffPolicyAgent):
     """The DrQ-v2 agent (an :class:`~dva.algorithms.base.Agent`); see the module docstring."""
 
-    loss_names = ("critic_loss", "actor_loss", "q_mean")
+    loss_names: tuple[str, ...] = ("critic_loss", "actor_loss", "q_mean")
     config: DrQV2Config
 
     def __init__(self, env: PixelObservations, config: DrQV2Config) -> None:
@@ -70,18 +88,35 @@ class DrQV2(OffPolicyAgent):
         self.actor = DeterministicActor(self.task.action_dim, config.feature_dim, config.hidden)
         self.critic = TwinQ(config.feature_dim, config.hidden)
         self.optimizer = optax.adam(config.lr)
+        self.keeps_state = config.state_prediction > 0
+        self.state_head = nn.Dense(self.task.obs_dim)
+        if self.keeps_state:
+            self.loss_names = (*self.loss_names, "state_prediction_loss")
 
     def init_learner(self, key: jax.Array, pixels: jax.Array) -> DrQV2Learner:
-        encoder_key, actor_key, critic_key = jax.random.split(key, 3)
+        encoder_key, actor_key, critic_key, head_key = jax.random.split(key, 4)
         encoder = self.encoder.init(encoder_key, pixels)
         features = self.encoder.apply(encoder, pixels)
         actor = self.actor.init(actor_key, features)
         critic = self.critic.init(critic_key, features, jnp.zeros((len(pixels), self.task.action_dim)))
+        trained = {"encoder": encoder, "critic": critic}
+        if self.keeps_state:
+            trained["state_head"] = self.state_head.init(head_key, features)
         return DrQV2Learner(
-            params={"encoder": encoder, "actor": actor, "critic": critic},
+            params={**trained, "actor": actor},
             target_critic=critic,
-            critic_opt_state=self.optimizer.init({"encoder": encoder, "critic": critic}),
+            critic_opt_state=self.optimizer.init(trained),
             actor_opt_state=self.optimizer.init(actor),
+            state_stats=RunningStats.create(self.task.obs_dim) if self.keeps_state else None,
+        )
+
+    def state_prediction_loss(self, stats: RunningStats, state: jax.Array):
+        """``(params, features) → weight × mean squared error`` of the head's prediction of the
+        normalised ``state``."""
+        target = stats.normalize(state)
+        return lambda trained, features: (
+            self.config.state_prediction
+            * jnp.mean((self.state_head.apply(trained["state_head"], features) - target) ** 2)
         )
 
     def exploration_std(self, env_steps: jax.Array) -> jax.Array:
@@ -113,8 +148,12 @@ class DrQV2(OffPolicyAgent):
         target_q = jnp.minimum(*self.critic.apply(learner.target_critic, next_features, next_action))
         target = jax.lax.stop_gradient(batch.reward + batch.discount * target_q)
 
-        trained, critic_opt_state, c_loss, features, q1 = self.fit_critic(
-            params, learner.critic_opt_state, obs, batch.action, target, weight
+        stats, auxiliary = learner.state_stats, None
+        if stats is not None and batch.state is not None:  # the privileged variant
+            stats = stats.update(batch.state)
+            auxiliary = self.state_prediction_loss(stats, batch.state)
+        trained, critic_opt_state, c_loss, features, q1, s_loss = self.fit_critic(
+            params, learner.critic_opt_state, obs, batch.action, target, weight, auxiliary
         )
 
         def actor_loss(actor):
@@ -129,8 +168,10 @@ class DrQV2(OffPolicyAgent):
             target_critic=optax.incremental_update(trained["critic"], learner.target_critic, cfg.target_tau),
             critic_opt_state=critic_opt_state,
             actor_opt_state=actor_opt_state,
+            state_stats=stats,
         )
-        return learner, {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q1)}
+        losses = {"critic_loss": c_loss, "actor_loss": a_loss, "q_mean": jnp.mean(q1)}
+        return learner, losses | ({"state_prediction_loss": s_loss} if self.keeps_state else {})
 
     # ---- the agent's policy ------------------------------------------------------------------
     def act(self, policy: dict, observation: Observation) -> jax.Array:

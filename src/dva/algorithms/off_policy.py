@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -76,9 +77,11 @@ def collect_into_replay(
     action: jax.Array,
     reward_scale: float = 1.0,
     stored=newest_frame,
+    keep_state: bool = False,
 ):
     """One step of every env with ``action``, stored in ``replay`` (``stored`` of the observation
-    the action was taken in, the reward × ``reward_scale``). ``state`` is any agent
+    the action was taken in, with ``keep_state`` its state vector too, the reward ×
+    ``reward_scale``). ``state`` is any agent
     state with ``env``, ``first``, ``replay`` and ``episode_return`` fields; returns it updated and
     the returns of the episodes that just ended (0 elsewhere; unscaled)."""
     next_env = env.step(state.env, action)
@@ -91,6 +94,7 @@ def collect_into_replay(
             reward=reward_scale * next_env.reward,
             terminated=next_env.terminated,
             truncated=next_env.truncated,
+            state=state.env.obs if keep_state else None,
         ),
     )
     episode_return = state.episode_return + next_env.reward
@@ -103,8 +107,9 @@ def collect_into_replay(
     return state, jnp.where(next_env.done, episode_return, 0.0)
 
 
-def empty_step(observed: jax.Array, action_dim: int) -> Step:
-    """A step shaped like one env's ``observed`` (no leading axis): what a replay's ``init`` needs."""
+def empty_step(observed: jax.Array, action_dim: int, state_dim: int = 0) -> Step:
+    """A step shaped like one env's ``observed`` (no leading axis), with a state vector of
+    ``state_dim`` entries if > 0: what a replay's ``init`` needs."""
     return Step(
         frame=observed,
         first=jnp.ones((), bool),
@@ -112,6 +117,7 @@ def empty_step(observed: jax.Array, action_dim: int) -> Step:
         reward=jnp.zeros(()),
         terminated=jnp.zeros((), bool),
         truncated=jnp.zeros((), bool),
+        state=jnp.zeros(state_dim) if state_dim else None,
     )
 
 
@@ -129,6 +135,7 @@ def seed_replay(
     key: jax.Array,
     reward_scale: float = 1.0,
     stored=newest_frame,
+    keep_state: bool = False,
 ):
     """``rounds`` steps of every env with uniform random actions, stored as
     :func:`collect_into_replay` stores them (the seed phase, run by an agent's ``init``: the
@@ -137,7 +144,7 @@ def seed_replay(
     def seed_round(state, round_key):
         shape = (env.num_envs, env.task.action_dim)
         uniform = jax.random.uniform(round_key, shape, minval=-1.0, maxval=1.0)
-        return collect_into_replay(env, replay, state, uniform, reward_scale, stored)[0], None
+        return collect_into_replay(env, replay, state, uniform, reward_scale, stored, keep_state)[0], None
 
     return jax.lax.scan(seed_round, state, jax.random.split(key, rounds))[0]
 
@@ -158,6 +165,7 @@ class OffPolicyAgent(abc.ABC):
         )
 
     batch_fields = ()  # one device: the replay is not split
+    keeps_state = False  # whether the replay keeps each observation's state vector (a privileged agent)
 
     @property
     def metric_names(self) -> tuple[str, ...]:
@@ -193,22 +201,33 @@ class OffPolicyAgent(abc.ABC):
         return {"encoder": state.learner.params["encoder"], "actor": state.learner.params["actor"]}
 
     def fit_critic(
-        self, params: dict, opt_state, obs: jax.Array, action: jax.Array, target: jax.Array, weight: jax.Array
+        self,
+        params: dict,
+        opt_state,
+        obs: jax.Array,
+        action: jax.Array,
+        target: jax.Array,
+        weight: jax.Array,
+        auxiliary: Callable[[dict, jax.Array], jax.Array] | None = None,
     ):
         """One clipped double-Q regression step of the encoder and critic towards ``target``
         (both heads, per-sample ``weight``), with the subclass's ``features``, ``critic`` and
-        ``optimizer``. Returns the new ``{"encoder", "critic"}``, the optimiser state, the loss,
-        the (detached) features of ``obs`` and Q₁."""
+        ``optimizer``; ``auxiliary(params, features)``, a loss added to it, trains
+        ``params["state_head"]`` too. Returns the new ``{"encoder", "critic"(, "state_head")}``, the
+        optimiser state, the critic's loss, the (detached) features of ``obs``, Q₁ and the auxiliary
+        loss (0 without one)."""
 
         def loss(trained):
             features = self.features(trained["encoder"], obs)
             q1, q2 = self.critic.apply(trained["critic"], features, action)
-            return jnp.sum(weight * ((q1 - target) ** 2 + (q2 - target) ** 2)), (features, q1)
+            critic_loss = jnp.sum(weight * ((q1 - target) ** 2 + (q2 - target) ** 2))
+            extra = jnp.zeros(()) if auxiliary is None else auxiliary(trained, features)
+            return critic_loss + extra, (critic_loss, features, q1, extra)
 
-        trained = {"encoder": params["encoder"], "critic": params["critic"]}
-        (value, (features, q1)), grads = jax.value_and_grad(loss, has_aux=True)(trained)
+        trained = {key: params[key] for key in ("encoder", "critic", "state_head") if key in params}
+        (_, (value, features, q1, extra)), grads = jax.value_and_grad(loss, has_aux=True)(trained)
         updates, opt_state = self.optimizer.update(grads, opt_state, trained)
-        return optax.apply_updates(trained, updates), opt_state, value, jax.lax.stop_gradient(features), q1
+        return optax.apply_updates(trained, updates), opt_state, value, jax.lax.stop_gradient(features), q1, extra
 
     # ---- the shared loop ----------------------------------------------------------------------
     @property
@@ -228,16 +247,23 @@ class OffPolicyAgent(abc.ABC):
             learner=self.init_learner(learner_key, env.frames[:1]),
             env=env,
             first=jnp.ones(self.config.num_envs, bool),
-            replay=self.replay.init(empty_step(newest_frame(env)[0], self.task.action_dim)),
+            replay=self.replay.init(
+                empty_step(newest_frame(env)[0], self.task.action_dim, self.task.obs_dim * self.keeps_state)
+            ),
             episode_return=jnp.zeros(self.config.num_envs),
             key=key,
             iteration=jnp.zeros((), jnp.int32),
         )
-        return seed_replay(self.env, self.replay, state, self.seed_rounds, seed_key, self.config.reward_scale)
+        cfg = self.config
+        return seed_replay(
+            self.env, self.replay, state, self.seed_rounds, seed_key, cfg.reward_scale, keep_state=self.keeps_state
+        )
 
     def collect(self, state: OffPolicyState, action: jax.Array) -> tuple[OffPolicyState, jax.Array]:
         """:func:`collect_into_replay` with this agent's env, replay and reward scale."""
-        return collect_into_replay(self.env, self.replay, state, action, self.config.reward_scale)
+        return collect_into_replay(
+            self.env, self.replay, state, action, self.config.reward_scale, keep_state=self.keeps_state
+        )
 
     def iteration(self, state: OffPolicyState) -> tuple[OffPolicyState, dict[str, jax.Array]]:
         """One exploring step of every env into the replay, then ``updates_per_iteration`` updates."""

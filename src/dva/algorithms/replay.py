@@ -31,6 +31,9 @@ class Step(struct.PyTreeNode):
     reward: jax.Array  # reward of the step
     terminated: jax.Array  # bool: the step ended the episode by failure
     truncated: jax.Array  # bool: the step hit the time limit
+    # the simulator's state vector of that observation, kept only for a privileged agent's
+    # state-prediction loss (None: not kept, no leaves)
+    state: jax.Array | None = None
 
 
 class NStepBatch(struct.PyTreeNode):
@@ -42,6 +45,7 @@ class NStepBatch(struct.PyTreeNode):
     discount: jax.Array  # (B,) γ^n if the episode runs past the window, else 0 (no bootstrap)
     next_obs: jax.Array  # (B, H, W, 3·k) uint8
     valid: jax.Array  # (B,) False where the window reaches a time-limit truncation
+    state: jax.Array | None = None  # (B, obs_dim) the state of ``obs`` where the replay keeps it
 
 
 def stack_at(frames: jax.Array, first: jax.Array, position: int, frame_stack: int) -> jax.Array:
@@ -116,4 +120,5 @@ class FrameReplay(SequenceReplay):
             discount=jnp.where(alive, self.gamma**self.n_step, 0.0),
             next_obs=stack_at(steps.frame, steps.first, t + self.n_step, self.frame_stack),
             valid=valid,
+            state=None if steps.state is None else steps.state[t],
         )

@@ -7,6 +7,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from dva.errors import DvaUsageError
 from dva.tasks import TASKS
 
 
@@ -69,12 +70,18 @@ class GradnormAnalysis(SizeOverrides):
 
     tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup", "hopper", "ant"])
     iterations: int = 100
+    algo: str = "dva"
+    """The D.Va variant compared with visual SHAC: dva (the paper's) | dva-privileged."""
 
     def run(self) -> None:
+        from dva.analysis.cost import DVA_VARIANTS
         from dva.analysis.gradnorm import gradient_norms, write_gradnorm_report
 
+        if self.algo not in DVA_VARIANTS:
+            raise DvaUsageError(f"--algo {self.algo} is not allowed; use one of: {', '.join(DVA_VARIANTS)}")
         out = self.out / "gradnorm"
-        rows, summary = gradient_norms(self.tasks, self.iterations, out, self.seed, **self.overrides())
+        algos = (self.algo, "shac-pixels")
+        rows, summary = gradient_norms(self.tasks, self.iterations, out, self.seed, algos=algos, **self.overrides())
         print_report(*write_gradnorm_report(rows, summary, out, f"actor gradient norm, seed {self.seed}"))
 
 

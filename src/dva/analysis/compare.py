@@ -44,6 +44,16 @@ COMPLETE = "complete.json"  # written into a run directory when its budget is sp
 # Every run is evaluated once per minute of its own clock, whatever its iteration time (D.Va ≈ 1 s,
 # DAgger's student ≈ 12 s on the CPU preset), so times to a threshold have the same resolution.
 EVAL_MINUTES = 1.0
+# The algorithms each figure compares by default (the paper's), and those ``algos`` may add: the
+# privileged variants, which learn from the simulator's state beside the pixels.
+COMPARED: dict[str, tuple[str, ...]] = {
+    "fig4": ("dva", "drqv2", "curl", "dreamerv3", "tdmpc2"),
+    "fig6": ("dva", "dagger"),
+    "fig7": ("dva", "shac-pixels"),
+    "fig13": ("shac", "dpg-state"),
+}
+EXTENSIONS: dict[str, tuple[str, ...]] = {"fig4": ("dva-privileged", "drqv2-privileged"), "fig7": ("dva-privileged",)}
+ABLATIONS = ("dva", "dva-privileged")  # the D.Va an ablation may vary (one, chosen by ``algos``)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,9 +79,10 @@ def figure_settings(
     baselines; fig6: D.Va vs state-to-visual DAgger (its teacher's time included); fig7: D.Va vs
     visual SHAC; fig13: SHAC vs DPG on the state (the full gradient against the decoupled one, no pixels);
     ablation-value: D.Va with and without its critic; ablation-frames: D.Va with each number of
-    stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable).
+    stacked frames in ``frames`` (default 1–6; a subset makes a long per-run budget affordable);
+    an ablation varies ``dva``, or the one D.Va variant in ``algos``.
     ``algos`` keeps only the settings of those algorithms (e.g. fig4's dva and drqv2 where the
-    model-based baselines would not fit the budget).
+    model-based baselines would not fit the budget) and may add the figure's :data:`EXTENSIONS`.
     """
     if figure not in FIGURES:
         raise DvaUsageError(f"figure {figure!r} is not allowed; use one of: {', '.join(FIGURES)}")
@@ -82,28 +93,29 @@ def figure_settings(
     ):
         raise DvaUsageError(f"frames = {list(frames)} is not allowed; use distinct ints ≥ 1, e.g. 1 2 3")
     per_task: list[tuple[str, str, tuple[tuple[str, Any], ...]]]  # (label, algo, config overrides)
+    if figure in ("ablation-value", "ablation-frames"):  # ``algos``: which D.Va the ablation varies
+        if algos is not None and (len(algos) != 1 or algos[0] not in ABLATIONS):
+            raise DvaUsageError(
+                f"algos = {list(algos)} is not allowed for {figure}; use one of: {', '.join(ABLATIONS)}"
+            )
+        dva, algos = (algos or ["dva"])[0], None
     if figure == "ablation-value":
-        per_task = [("D.Va", "dva", ()), ("D.Va without critic", "dva", (("use_critic", False),))]
+        per_task = [(dva, dva, ()), (f"{dva} without critic", dva, (("use_critic", False),))]
     elif figure == "ablation-frames":
         per_task = [
-            (f"D.Va, {k} frame{'s' * (k > 1)}", "dva", (("frame_stack", k),))
+            (f"{dva}, {k} frame{'s' * (k > 1)}", dva, (("frame_stack", k),))
             for k in (FRAME_STACKS if frames is None else frames)
         ]
     else:
-        compared = {
-            "fig4": ("dva", "drqv2", "curl", "dreamerv3", "tdmpc2"),
-            "fig6": ("dva", "dagger"),
-            "fig7": ("dva", "shac-pixels"),
-            "fig13": ("shac", "dpg-state"),
-        }[figure]
-        per_task = [(algo, algo, ()) for algo in compared]
+        per_task = [(algo, algo, ()) for algo in COMPARED[figure]]
     if algos is not None:
-        allowed = list(dict.fromkeys(algo for _, algo, _ in per_task))
+        allowed = list(dict.fromkeys([*(algo for _, algo, _ in per_task), *EXTENSIONS.get(figure, ())]))
         if not algos or len(set(algos)) != len(algos) or not set(algos) <= set(allowed):
             raise DvaUsageError(
                 f"algos = {list(algos)} is not allowed for {figure}; use distinct names from: {', '.join(allowed)}"
             )
-        per_task = [entry for entry in per_task if entry[1] in algos]
+        listed = [entry for entry in per_task if entry[1] in algos]
+        per_task = listed + [(algo, algo, ()) for algo in algos if algo not in {entry[1] for entry in listed}]
     return [Setting(label, task, algo, overrides) for task in tasks for label, algo, overrides in per_task]
 
 
@@ -117,6 +129,8 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
     """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
     from dva.runner.training import checkpoint_manager, read_progress, train
 
+    if (run_dir / "run.json").exists():
+        check_same_setting(setting, preset, run_dir)
     if is_complete(run_dir, minutes):
         return "skipped (complete)"
     how: dict[str, Any] | None  # train()'s arguments, or None: nothing to train
@@ -132,6 +146,28 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
         train(setting.task, setting.algo, run_dir=run_dir, eval_every=None, eval_minutes=EVAL_MINUTES, **how)
     (run_dir / COMPLETE).write_text(json.dumps({"minutes": minutes}))
     return action
+
+
+def check_same_setting(setting: Setting, preset: str, run_dir: Path) -> None:
+    """A run folder is reused only for the algorithm and config it was trained with: a clear error
+    naming what differs where ``setting`` under ``preset`` asks for another (a changed preset, an
+    old run of a renamed variant)."""
+    from dva.algorithms import make_config
+    from dva.runner.training import RunSpec
+
+    spec = RunSpec.read(run_dir / "run.json")
+    wanted = make_config(setting.task, setting.algo, preset, **dict(setting.overrides))
+    if getattr(wanted, "teacher", "") is None:  # DAgger: the teacher it trained is part of the run
+        wanted = dataclasses.replace(wanted, teacher=spec.config.teacher)
+    differences = [f"algo {spec.algo} (wanted {setting.algo})"] if spec.algo != setting.algo else []
+    if type(spec.config) is type(wanted):
+        old, new = dataclasses.asdict(spec.config), dataclasses.asdict(wanted)
+        differences += [f"{key} {old[key]!r} (wanted {new[key]!r})" for key in new if old.get(key) != new[key]]
+    if differences:
+        raise DvaUsageError(
+            f"{run_dir} holds a run of another setting than {setting.label!r} under the {preset} preset: "
+            f"{', '.join(differences)}; move it away or use another --out"
+        )
 
 
 @dataclasses.dataclass(frozen=True)

@@ -24,6 +24,7 @@ from dva.analysis.bench import markdown_table, timed, write_csv
 from dva.analysis.profile import build_shac
 
 COMPARED = ("dva", "shac-pixels")  # the method and its baseline (paper's "SHAC + diff. rendering")
+DVA_VARIANTS = ("dva", "dva-privileged")  # what an analysis may put in the method's place
 PAPER_BACKWARD_S = {  # the paper's Table 1 (RTX 4080): (D.Va, visual SHAC)
     "cartpole_swingup": (0.11, 0.36),
     "hopper": (0.19, 0.51),

@@ -21,16 +21,22 @@ from dva.runner.training import TrainingDiverged, train
 
 
 def gradient_norms(
-    tasks: list[str], iterations: int, out_dir: Path, seed: int = 0, preset: str = "cpu", **overrides
+    tasks: list[str],
+    iterations: int,
+    out_dir: Path,
+    seed: int = 0,
+    preset: str = "cpu",
+    algos: tuple[str, ...] = COMPARED,
+    **overrides,
 ) -> tuple[list[dict], list[dict]]:
-    """Train every algorithm of :data:`COMPARED` on every task for ``iterations``.
+    """Train every algorithm of ``algos`` (D.Va and visual SHAC) on every task for ``iterations``.
 
     Returns per-iteration rows (task, algo, iteration, actor_grad_norm) and one summary row per
     run (median and max norm, and the iteration it diverged at, if it did).
     """
     rows, summary = [], []
     for task in tasks:
-        for algo in COMPARED:
+        for algo in algos:
             run_dir = out_dir / "runs" / f"{task}_{algo}_s{seed}"
             shutil.rmtree(run_dir, ignore_errors=True)  # a fresh run each time the analysis runs
             diverged: TrainingDiverged | None = None
@@ -79,7 +85,7 @@ def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path, 
     fig = Figure(figsize=(4 * len(tasks), 3.4), dpi=120)
     axes = fig.subplots(1, len(tasks), squeeze=False)
     for ax, task in zip(axes[0], tasks):
-        for algo in COMPARED:
+        for algo in dict.fromkeys(r["algo"] for r in summary):
             run = [r for r in rows if r["task"] == task and r["algo"] == algo]
             (line,) = ax.semilogy([r["iteration"] for r in run], [r["actor_grad_norm"] for r in run], label=algo, lw=1)
             end = next(s for s in summary if s["task"] == task and s["algo"] == algo)

@@ -20,7 +20,7 @@ import orbax.checkpoint as ocp
 from jax.sharding import Mesh
 from tqdm import tqdm
 
-from dva.algorithms import build_agent, check_algo, config_from_dict, make_config
+from dva.algorithms import build_agent, check_algo, config_from_dict, make_config, saved_algo
 from dva.algorithms.base import Agent, RecurrentAgent, TeacherRun
 from dva.envs.dmc import make_dmc_task
 from dva.envs.registry import is_dmc
@@ -53,9 +53,11 @@ class RunSpec:
 
     @classmethod
     def read(cls, path: Path) -> RunSpec:
-        """The spec saved in ``path`` (``run.json``), its config typed again."""
+        """The spec saved in ``path`` (``run.json``), its config typed again (under the registry
+        entry it belongs to now: :func:`~dva.algorithms.saved_algo`)."""
         values = json.loads(path.read_text())
-        return cls(**dict(values, config=config_from_dict(values["algo"], values["config"])))
+        config = config_from_dict(values["algo"], values["config"])
+        return cls(**dict(values, algo=saved_algo(values["algo"], config), config=config))
 
     def to_dict(self) -> dict:
         """As ``run.json`` holds it."""
