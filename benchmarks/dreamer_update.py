@@ -89,7 +89,7 @@ def update_pieces(algo: str, task: str, preset: str):
     import jax.numpy as jnp
 
     from dva.algorithms import build_agent, make_config
-    from dva.runner.training import initial_state
+    from dva.runner.compiled import initial_state
 
     config = make_config(task, algo, preset)
     agent = build_agent(task, algo, config)

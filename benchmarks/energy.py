@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dva.analysis.bench import machine_description, markdown_table
-from dva.runner.training import load_run
+from dva.runner.compiled import load_run
 from dva.tasks.physics import mechanical_energy
 
 

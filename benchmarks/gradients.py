@@ -28,7 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dva.analysis.bench import machine_description, markdown_table
-from dva.tasks import PHYSICS, TASKS, make_task
+from dva.tasks import BUILTIN_TASKS, make_task
+from dva.tasks.physics import PHYSICS
 
 HORIZONS = (1, 2, 4, 8, 16, 32)
 WARM_UP_STEPS = 60
@@ -79,7 +80,7 @@ def gradient_norms(
 
 def trained_policy(run_dir: Path) -> tuple[str, str, Callable[[jax.Array], jax.Array]]:
     """(task, physics, deterministic policy) of a state-observation run's latest checkpoint."""
-    from dva.runner.training import load_run
+    from dva.runner.compiled import load_run
 
     spec, agent, state = load_run(run_dir)
     if agent.config.observation != "state":
@@ -93,7 +94,7 @@ def trained_policy(run_dir: Path) -> tuple[str, str, Callable[[jax.Array], jax.A
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--tasks", nargs="+", default=list(BUILTIN_TASKS), choices=list(BUILTIN_TASKS))
     parser.add_argument("--physics", nargs="+", default=list(PHYSICS), choices=list(PHYSICS))
     parser.add_argument("--runs", nargs="+", type=Path, default=[], help="trained state-policy runs (replaces --tasks)")
     parser.add_argument("--num-envs", type=int, default=16)

@@ -18,12 +18,12 @@ import numpy as np
 import dva
 from dva.analysis.bench import write_csv
 from dva.runner.evaluation import random_policy_returns
-from dva.tasks import TASKS, make_task
+from dva.tasks import BUILTIN_TASKS, make_task
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--tasks", nargs="+", default=list(BUILTIN_TASKS), choices=list(BUILTIN_TASKS))
     parser.add_argument("--episodes", type=int, default=64)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--csv", type=Path, help="also write the rows to this CSV file")

@@ -60,10 +60,11 @@ def measure(name: str, physics: str, num_envs: int, render: bool) -> dict[str, f
 
 
 def main() -> None:
-    from dva.tasks import PHYSICS, TASKS
+    from dva.tasks import BUILTIN_TASKS
+    from dva.tasks.physics import PHYSICS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS))
+    parser.add_argument("--tasks", nargs="+", default=list(BUILTIN_TASKS), choices=list(BUILTIN_TASKS))
     parser.add_argument("--physics", nargs="+", default=list(PHYSICS), choices=list(PHYSICS))
     parser.add_argument("--num-envs", type=int, default=64)
     parser.add_argument("--render", action=argparse.BooleanOptionalAction, default=True)

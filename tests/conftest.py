@@ -30,9 +30,9 @@ import dva  # noqa: E402
 
 dva.configure()  # what the command line sets up: the encoder's CPU convolutions, compile caches
 
-from dva.tasks import TASKS, make_task  # noqa: E402
+from dva.tasks import BUILTIN_TASKS, make_task  # noqa: E402
 
-ALL_TASKS = list(TASKS)
+ALL_TASKS = list(BUILTIN_TASKS)
 
 
 @pytest.fixture(params=ALL_TASKS)

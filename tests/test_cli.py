@@ -8,8 +8,9 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+import dva.cli
 from dva.cli import main
-from dva.runner import training
+from dva.runner.compiled import compiled, load_run
 
 
 def test_tasks_lists_every_task_with_sizes(capsys):
@@ -102,6 +103,18 @@ BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run
         "--shac.* flags (horizon): --resume keeps the run's own config",
     ),
     (["train", "--shac.horizon", "0", "--run-dir", "RUN"], "horizon = 0 is not allowed; use a whole number > 0"),
+    (["train", "--shac.actor-lr", "nan", "--run-dir", "RUN"], "actor_lr = nan is not allowed; use a number > 0"),
+    (["train", "--shac.actor-lr", "-1", "--run-dir", "RUN"], "actor_lr = -1.0 is not allowed; use a number > 0"),
+    (["train", "--shac.gamma", "1.5", "--run-dir", "RUN"], "gamma = 1.5 is not allowed; use a number in (0, 1]"),
+    (
+        ["train", "--algo", "dva-privileged", "--shac.state-prediction=-2", "--run-dir", "RUN"],
+        "state_prediction = -2.0 is not allowed; use a number ≥ 0",
+    ),
+    (["train", "--algo", "drqv2", "--drqv2.target-tau", "inf", "--run-dir", "RUN"], "target_tau = inf is not allowed"),
+    (
+        ["train", "--algo", "dreamerv3", "--dreamerv3.model-lr", "0", "--run-dir", "RUN"],
+        "model_lr = 0.0 is not allowed",
+    ),
     (["report", "--stamp", "fig4_hopper"], "--stamp needs --commit"),
     (["eval", "RUN", "--strip", "FILE", "--strip-frames", "0"], "--strip-frames 0 is not allowed; use a number ≥ 1"),
 ]
@@ -131,7 +144,7 @@ def test_a_bug_keeps_its_traceback(monkeypatch):
     def broken(*args, **kwargs):
         raise ValueError("an internal inconsistency")
 
-    monkeypatch.setattr(training, "train", broken)
+    monkeypatch.setattr(dva.cli, "train", broken)
     with pytest.raises(ValueError, match="an internal inconsistency"):
         main(["train", "--iterations", "1"])
 
@@ -183,7 +196,7 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
     first, last = image[2:34, 2:34], image[2:34, -34:-2]
     assert np.abs(first.astype(int) - last).max() > 30  # the cart-pole moved between them
     # dva eval reused the recorded evaluation the training report compiled (tens of seconds on a CPU)
-    assert training.compiled(training.load_run(run_dir)[1]).evaluate_recorded._cache_size() == 1
+    assert compiled(load_run(run_dir)[1]).evaluate_recorded._cache_size() == 1
 
 
 def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
@@ -242,13 +255,12 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
 
 
 def test_diverged_training_exits_with_a_message(tmp_path, monkeypatch, capsys):
-    import dva.runner.training
     from dva.runner.training import TrainingDiverged
 
     def diverge(*args, **kwargs):
         raise TrainingDiverged("actor gradient norm 5e+09 is NaN or above 1e+08 at iteration 59", 59, {})
 
-    monkeypatch.setattr(dva.runner.training, "train", diverge)
+    monkeypatch.setattr(dva.cli, "train", diverge)
     with pytest.raises(SystemExit) as exit_info:
         main(["train", "--task", "cartpole_swingup", "--run-dir", str(tmp_path / "run")])
     assert exit_info.value.code == 3

@@ -16,14 +16,13 @@ import time
 import pytest
 
 import dva.analysis.compare as compare_module
-import dva.runner.training
 from dva.algorithms import make_config
 from dva.analysis.compare import Job, cpu_groups, figure_settings, grid_settings, launch_pinned, run_parallel
 from dva.cli import main
 
 
 class FakeTraining:
-    """Stands in for ``dva.runner.training.train`` and ``checkpoint_manager``: logs one evaluation per
+    """Stands in for ``train`` and ``checkpoint_manager`` in ``dva.analysis.compare``: logs one evaluation per
     simulated minute and leaves a checkpoint marker."""
 
     def __init__(self) -> None:
@@ -62,8 +61,8 @@ class FakeTraining:
 @pytest.fixture
 def fake(monkeypatch):
     fake = FakeTraining()
-    monkeypatch.setattr(dva.runner.training, "train", fake.train)
-    monkeypatch.setattr(dva.runner.training, "checkpoint_manager", fake.checkpoint_manager)
+    monkeypatch.setattr(compare_module, "train", fake.train)
+    monkeypatch.setattr(compare_module, "checkpoint_manager", fake.checkpoint_manager)
     return fake
 
 
@@ -192,7 +191,7 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
 
 
 def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkeypatch):
-    from dva.envs.registry import TARGET_RETURNS
+    from dva.tasks import TARGET_RETURNS
 
     monkeypatch.delitem(TARGET_RETURNS, "quadruped")  # a task without a target is not timed
     tasks = ["--tasks", "cartpole_swingup", "hopper", "quadruped"]
@@ -344,7 +343,8 @@ def test_a_sweep_on_rays_embedded_cluster_trains_skips_and_resumes(tmp_path, cap
     import ray
 
     from dva.analysis.compare import run_settings
-    from dva.runner.training import read_progress, train
+    from dva.runner.logs import read_progress
+    from dva.runner.training import train
 
     small = ["num_envs=4", "horizon=8", "critic_minibatches=2", "actor_hidden=[16]", "critic_hidden=[16]"]
     grid = ["actor_lr=1e-3,2e-3", *small]

@@ -50,7 +50,7 @@ def test_curl_update_trains_every_part_and_moves_the_key_encoder_by_momentum():
     # 5 × 4 envs × 2 repeats = 40 env steps: past the seed phase, a full sequence in every env.
     agent, previous, state, metrics = small_off_policy_agent("curl", 5, seed_steps=16, updates_per_iteration=1)
     config = agent.config
-    assert metrics["healthy"] and all(np.isfinite(metrics[name]) for name in agent.loss_names)
+    assert metrics.healthy and all(np.isfinite(metrics.logged[name]) for name in agent.loss_names)
     learner, updated = previous.learner, state.learner  # one update apart
     for name in ("encoder", "critic", "actor", "projection", "bilinear", "log_alpha"):
         change = max(

@@ -63,7 +63,7 @@ def test_dagger_labels_with_the_teacher_and_follows_it_when_told():
     np.testing.assert_allclose(after.env.data.qpos, env.data.qpos, rtol=1e-5, atol=1e-6)
     stored = np.asarray(after.replay.experience["action"][0, : NUM_ENVS * HORIZON])
     np.testing.assert_allclose(stored, np.concatenate(expected), rtol=1e-6)  # every label is the teacher's
-    assert float(metrics["teacher_fraction"]) == 1.0 and np.isfinite(metrics["bc_loss"])
+    assert float(metrics.logged["teacher_fraction"]) == 1.0 and np.isfinite(metrics.logged["bc_loss"])
 
 
 def test_dagger_student_rollouts_are_still_labelled_and_the_student_learns_the_labels():
@@ -84,12 +84,12 @@ def test_dagger_student_rollouts_are_still_labelled_and_the_student_learns_the_l
     assert agent.act(agent.policy(state), observations).shape == (NUM_ENVS, 1)
     student_driven = dagger(teacher_fraction=0.0, stop_bc_loss=1e9)
     _, metrics = jax.jit(student_driven.iteration)(jax.jit(student_driven.init)(jax.random.PRNGKey(0)))
-    assert bool(metrics["stop"])  # the student drives and its loss is below the threshold: the run ends
+    assert bool(metrics.stop)  # the student drives and its loss is below the threshold: the run ends
     # The stop rule waits until the student drives: with the teacher acting, even a loss below
     # the threshold does not end the run (its samples are the teacher's states, not the student's).
     teacher_driven = dagger(stop_bc_loss=1e9)
     _, metrics = jax.jit(teacher_driven.iteration)(jax.jit(teacher_driven.init)(jax.random.PRNGKey(0)))
-    assert float(metrics["fresh_bc_loss"]) < 1e9 and not bool(metrics["stop"])
+    assert float(metrics.logged["fresh_bc_loss"]) < 1e9 and not bool(metrics.stop)
 
 
 def test_dagger_stops_on_the_averaged_fresh_loss_not_on_one_dip():
@@ -99,12 +99,12 @@ def test_dagger_stops_on_the_averaged_fresh_loss_not_on_one_dip():
     # run going although this iteration's fresh loss is below it.
     state = state.replace(iteration=jnp.asarray(5, jnp.int32), fresh_loss_average=jnp.asarray(1e11))
     after, metrics = jax.jit(agent.iteration)(state)
-    fresh = float(metrics["fresh_bc_loss"])
-    assert fresh < 1e9 and not bool(metrics["stop"])
-    np.testing.assert_allclose(float(metrics["fresh_bc_loss_average"]), 0.9 * 1e11 + 0.1 * fresh, rtol=1e-6)
-    np.testing.assert_allclose(float(after.fresh_loss_average), float(metrics["fresh_bc_loss_average"]))
+    fresh = float(metrics.logged["fresh_bc_loss"])
+    assert fresh < 1e9 and not bool(metrics.stop)
+    np.testing.assert_allclose(float(metrics.logged["fresh_bc_loss_average"]), 0.9 * 1e11 + 0.1 * fresh, rtol=1e-6)
+    np.testing.assert_allclose(float(after.fresh_loss_average), float(metrics.logged["fresh_bc_loss_average"]))
     # Once the average has come down, the same rule ends the run.
     _, metrics = jax.jit(agent.iteration)(state.replace(fresh_loss_average=jnp.asarray(1e8)))
-    assert bool(metrics["stop"])
+    assert bool(metrics.stop)
     with pytest.raises(ValueError, match="stop_loss_decay = 1.0"):
         dagger(stop_loss_decay=1.0)

@@ -41,16 +41,16 @@ def test_drqv2_explores_on_its_own_schedule_per_task():
 def test_names_sizes_and_presets():
     from dva.algorithms import make_config
     from dva.envs.dmc import make_dmc_task
-    from dva.tasks import check_task_name
+    from dva.envs.factory import check_env_name
 
     task = make_dmc_task("dmc:cartpole-swingup")
     assert (task.domain, task.task, task.obs_dim, task.action_dim, task.camera) == ("cartpole", "swingup", 5, 1, 0)
     assert make_dmc_task("dmc:quadruped-run").camera == 2
-    check_task_name("dmc:cheetah-run")
+    check_env_name("dmc:cheetah-run")
     with pytest.raises(
         DvaUsageError, match="unknown dm_control task 'dmc:cartpole-spin'; choose one of: .*dmc:cartpole-swingup"
     ):
-        check_task_name("dmc:cartpole-spin")
+        check_env_name("dmc:cartpole-spin")
     config = make_config("dmc:cartpole-swingup", "drqv2", "cpu")
     assert (config.reward_scale, config.action_repeat, config.std_decay_steps) == (1.0, 2, 200_000)
 

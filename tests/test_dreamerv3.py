@@ -21,7 +21,8 @@ from dva.algorithms import build_agent, make_config
 from dva.algorithms.dreamerv3 import clip_straight_through, sample_onehot
 from dva.algorithms.model_based_math import lambda_returns, normalized_advantage, twohot_decode, update_return_scale
 from dva.networks.dreamer import LayerNormGRU
-from dva.runner.training import load_run, train
+from dva.runner.compiled import load_run
+from dva.runner.training import train
 
 # 4 × 8 replayed steps per update at ratio 16 over 2 envs: collect 1 step, update once. No action
 # repeat: one env step to compile where the loop has one (collection, seed phase, evaluation).

@@ -123,8 +123,9 @@ def small_agent():
 
 def test_drqv2_learns_after_the_seed_phase_and_moves_the_target_by_tau(small_agent):
     agent, previous, state, metrics = small_agent
-    assert np.isfinite(metrics["critic_loss"]) and np.isfinite(metrics["actor_loss"]) and metrics["healthy"]
-    assert metrics["exploration"] < 1.0  # the std schedule has started
+    logged = metrics.logged
+    assert np.isfinite(logged["critic_loss"]) and np.isfinite(logged["actor_loss"]) and metrics.healthy
+    assert logged["exploration"] < 1.0  # the std schedule has started
     learner, updated = previous.learner, state.learner
     tau = agent.config.target_tau
     expected = jax.tree.map(
@@ -204,4 +205,4 @@ def test_drqv2_privileged_adds_the_weighted_state_error_to_the_encoders_loss():
     assert float(with_state[5]) == pytest.approx(float(by_hand(learner.params)), rel=1e-5)
     moved = np.abs(np.asarray(jax.tree.leaves(with_state[0]["encoder"])[0] - jax.tree.leaves(plain[0]["encoder"])[0]))
     assert moved.max() > 0  # the state's error reaches the encoder
-    assert np.isfinite(metrics["state_prediction_loss"]) and metrics["state_prediction_loss"] > 0
+    assert np.isfinite(metrics.logged["state_prediction_loss"]) and metrics.logged["state_prediction_loss"] > 0

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from dva.tasks import TASKS
+from dva.tasks import BUILTIN_TASKS, task_class
 from dva.tasks.cartpole import CartpoleSwingup
 
 MAX_STEPS = 32
@@ -78,13 +78,15 @@ def lifted_coordinates(task):
 # forward is the converged solve, so these finite differences are those of the converged physics.
 # Cart-pole balance is left out: it is the swing-up's model and physics from another start, and
 # this test sets its own start (each case costs minutes of tracing and compiling).
-CASES = [(name, TASKS[name].physics) for name in TASKS if name != "cartpole_balance"] + [("hopper", "mujoco")]
+CASES = [(name, task_class(name).physics) for name in BUILTIN_TASKS if name != "cartpole_balance"] + [
+    ("hopper", "mujoco")
+]
 
 
 @pytest.mark.parametrize("name,physics", CASES)
 def test_rollout_gradients_match_finite_differences(name, physics):
     with jax.enable_x64(True):
-        task = TASKS[name](physics)  # a float64 model
+        task = task_class(name)(physics)  # a float64 model
         nv, nu = task.mj_model.nv, task.action_dim
         keys = jax.random.split(jax.random.PRNGKey(0), 4)
         state0 = jax.jit(task.reset, static_argnums=1)(keys[0], 1)

@@ -101,3 +101,29 @@ def test_bad_image_size_and_batch_are_rejected():
 def test_wrong_batch_is_rejected(cartpole_renderer):
     with pytest.raises(ValueError, match=r"qpos has shape \(3, 2\)"):
         cartpole_renderer(jnp.zeros((3, 2)))
+
+
+QUIET_PROBE = """
+import logging, sys
+if sys.argv[1] == "debug":
+    logging.basicConfig()
+    logging.getLogger("dva").setLevel(logging.DEBUG)
+import gymnasium, dva
+gymnasium.make_vec("dva/cartpole_swingup-v0", num_envs=2, obs_type="pixels", image_size=16)
+print("made")
+"""
+
+
+def test_warp_starts_quietly_unless_dvas_logger_asks_for_its_messages():
+    """Making a pixel env prints nothing of Warp's start-up (its banner, per-kernel load lines, the
+    notice a machine without a GPU gets) unless the ``dva`` logger is at DEBUG."""
+    import subprocess
+    import sys
+
+    quiet, verbose = (
+        subprocess.run([sys.executable, "-c", QUIET_PROBE, level], capture_output=True, text=True, timeout=600)
+        for level in ("default", "debug")
+    )
+    assert quiet.returncode == 0 and verbose.returncode == 0, quiet.stderr + verbose.stderr
+    assert quiet.stdout.strip() == "made" and "Warp" not in quiet.stderr, quiet.stderr
+    assert "Warp" in verbose.stdout + verbose.stderr

@@ -20,7 +20,7 @@ CURVE = """iteration,env_steps,wall_time,eval_return,actor_grad_norm
 """
 
 
-def make_root(tmp_path: Path, fingerprint: str = "") -> Path:
+def make_root(tmp_path: Path, fingerprint: str = "") -> report.Layout:
     """A repository with one source file, one section of two seeds and a document."""
     (tmp_path / "src").mkdir()
     (tmp_path / "src" / "task.py").write_text("reward = 1\n")
@@ -43,7 +43,7 @@ def make_root(tmp_path: Path, fingerprint: str = "") -> Path:
         path.write_text(
             "# Doc\n\n<!-- generated: status -->\n<!-- end -->\n\n<!-- generated: toy -->\nold\n<!-- end -->\n"
         )
-    return tmp_path
+    return report.Layout(tmp_path)
 
 
 def test_run_statistics_are_the_hand_computed_ones(tmp_path):
@@ -63,7 +63,7 @@ def test_a_section_is_stale_exactly_when_its_sources_changed(tmp_path):
     report.stamp(root, "toy", "4567def")
     fresh = report.generate(root, "docs/results.md")
     assert "**Stale**" not in fresh and "†" not in fresh and "code `4567def`" in fresh
-    (root / "src" / "task.py").write_text("reward = 2\n")
+    (root.root / "src" / "task.py").write_text("reward = 2\n")
     assert "**Stale**" in report.generate(root, "docs/results.md")
 
 
@@ -78,7 +78,7 @@ def test_bad_columns_and_thinned_logs_are_refused(tmp_path):
     root = make_root(tmp_path)
     with pytest.raises(ValueError, match="unknown results column 'fastest'"):
         report.run_column("fastest")
-    folder = root / report.RESULTS / "toy"
+    folder = root.folder / "toy"
     (folder / "s0.csv").write_text(CURVE.replace("1,256,30.0,,5.0\n", ""))
     with pytest.raises(ValueError, match="logs actor_grad_norm for 3 of its 4 iterations"):
         report.generate(root, "docs/results.md")
@@ -88,7 +88,7 @@ def test_bad_columns_and_thinned_logs_are_refused(tmp_path):
 
 def test_the_documents_equal_what_their_data_generate():
     """Run `dva report` after changing data, a section.toml, or the code a section measures."""
-    diff = report.differences(ROOT)
+    diff = report.differences(report.Layout(ROOT))
     assert diff == "", "the results documents differ from their data; run `dva report`:\n" + diff
 
 
@@ -102,7 +102,7 @@ def test_every_data_folder_is_a_section_the_documents_show():
 
 def test_a_published_curve_is_read_from_its_columns_and_drawn(tmp_path):
     root = make_root(tmp_path)
-    folder = root / report.RESULTS / "toy"
+    folder = root.folder / "toy"
     (folder / "published.csv").write_text("frames,seed_1,seed_2,seed_3\n0,1,2,3\n1000,400,100,700\n")
     toml = (folder / "section.toml").read_text()
     (folder / "section.toml").write_text(toml.replace("[runs]", "plot = true\n[runs]"))
@@ -129,3 +129,28 @@ def test_a_published_curve_is_read_from_its_columns_and_drawn(tmp_path):
     (folder / "section.toml").write_text(bad)
     with pytest.raises(ValueError, match="no column 'step'"):
         report.Section.load(root, "toy").published_curve()
+
+
+def test_a_report_of_a_users_own_folder_of_sections(tmp_path, capsys):
+    """`dva report --sections DIR --documents FILE`: a user's own runs, one section each, fill the
+    generated blocks of their own document (no summary file needed), and the check then passes."""
+    from dva.cli import main
+
+    folder = tmp_path / "my_results" / "sweep"
+    folder.mkdir(parents=True)
+    (folder / "lr_1e-3.csv").write_text(CURVE)
+    (folder / "section.toml").write_text(
+        'command = "dva train --task hopper --shac.actor-lr 1e-3"\nmachine = "my laptop"\ncommit = "abc1234"\n'
+        'fingerprint = ""\n\n[runs]\n"lr 1e-3" = ["lr_1e-3.csv"]\n\n[[tables]]\ncolumns = ["final", "best"]\n'
+    )
+    (tmp_path / "report.md").write_text("# Mine\n\n<!-- generated: sweep -->\n<!-- end -->\n")
+    options = ["--root", str(tmp_path), "--sections", "my_results", "--documents", "report.md"]
+    main(["report", *options])
+    text = (tmp_path / "report.md").read_text()
+    assert "| lr 1e-3 | 500 | 700 |" in text and "data in `my_results/sweep/`" in text
+    with pytest.raises(SystemExit) as exit_info:
+        main(["report", "--check", *options])
+    assert exit_info.value.code == 0 and "agree with their data" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["report", "--root", str(tmp_path), "--sections", "nowhere"])
+    assert "--sections nowhere is not a folder" in capsys.readouterr().err

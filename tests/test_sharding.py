@@ -13,8 +13,9 @@ import textwrap
 import pytest
 
 from dva.algorithms import make_config
+from dva.runner.checkpoint import RunSpec
 from dva.runner.sharding import device_mesh
-from dva.runner.training import RunSpec, run_mesh
+from dva.runner.training import run_mesh
 
 TWO_DEVICES = textwrap.dedent(
     """
@@ -30,7 +31,7 @@ TWO_DEVICES = textwrap.dedent(
     mesh = device_mesh(2, 4)
     if part == "state":  # and Warp's renderer split over the devices
         from dva.envs.rendering import PixelRenderer
-        from dva.runner.sharding import SplitRenderer
+        from dva.envs.factory import SplitRenderer
         from dva.tasks import make_task
 
         task = make_task("cartpole_swingup")

@@ -11,7 +11,7 @@ import pytest
 from dva.envs.rendering import PixelRenderer
 from dva.envs.soft_rendering import SoftRenderer
 from dva.envs.visualize import random_rollout
-from dva.tasks import TASKS, make_task
+from dva.tasks import make_task, task_class
 
 NUM_ENVS = 2
 
@@ -40,7 +40,7 @@ def test_image_close_to_the_warp_renderer(name, bound, record_property):
 
 def test_pixel_gradients_match_finite_differences():
     with jax.enable_x64(True):
-        task = TASKS["cartpole_swingup"]()  # float64 model
+        task = task_class("cartpole_swingup")()  # float64 model
         renderer = SoftRenderer(task, 1, 32)
         qpos = jnp.array([[0.4, 2.5]])  # cart off-centre, pole tilted down-left
         weights = jax.random.normal(jax.random.PRNGKey(0), (1, 32, 32, 3), jnp.float64)

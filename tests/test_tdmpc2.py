@@ -19,7 +19,8 @@ from dva.algorithms.replay import Step
 from dva.algorithms.tdmpc2 import TDMPC2, discount_for
 from dva.envs.observations import PixelObservations
 from dva.networks.tdmpc2 import simnorm
-from dva.runner.training import load_run, train
+from dva.runner.compiled import load_run
+from dva.runner.training import train
 from dva.tasks import make_task
 
 # 48² frames through 4-channel convolutions: a 2·2·4 = 16-entry latent; 2 envs, no action repeat.

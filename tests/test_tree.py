@@ -14,11 +14,11 @@ from mujoco import mjx
 from mujoco.mjx._src import smooth as mjx_smooth
 
 from dva.errors import DvaUsageError
-from dva.tasks import TASKS, make_task
+from dva.tasks import BUILTIN_TASKS, make_task
 from dva.tasks.physics import bodies_of, penalty_forces
 from dva.tasks.tree import KinematicTree, forward, integrate, mass_matrix
 
-ROBOTS = [name for name in TASKS if name != "cartpole_balance"]  # balance shares swing-up's model
+ROBOTS = [name for name in BUILTIN_TASKS if name != "cartpole_balance"]  # balance shares swing-up's model
 
 
 def random_state(task, seed: int) -> tuple[np.ndarray, np.ndarray]:

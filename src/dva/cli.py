@@ -10,16 +10,35 @@ import typing
 from pathlib import Path
 from typing import Annotated, Any, Optional, Union
 
+import jax
+import numpy as np
 import tyro
 
 from dva.algorithms import ALGORITHMS, AlgoName
+from dva.analysis import report
 from dva.analysis.commands import ANALYSES
-from dva.analysis.compare import Backend, FigureName
+from dva.analysis.compare import Backend, FigureName, figure_settings, grid_settings, run_settings
+from dva.analysis.plots import plot_runs, write_summary
 from dva.configs import PresetName
+from dva.envs.factory import check_env_name, simulated_task
+from dva.envs.rendering import PixelRenderer
+from dva.envs.visualize import (
+    image_grid,
+    policy_strip,
+    policy_video,
+    random_rollout,
+    render_trajectory,
+    save_png,
+    write_video,
+)
 from dva.errors import DvaUsageError
+from dva.runner.compiled import evaluate_run
+from dva.runner.evaluation import random_policy_returns
 from dva.runner.runtime import configure
-from dva.runner.training import TrainingDiverged, check_budget
-from dva.tasks import TASKS, check_physics, check_task_name
+from dva.runner.tracking import WandbTracker
+from dva.runner.training import TrainingDiverged, check_budget, train
+from dva.tasks import TARGET_RETURNS, make_task, task_names
+from dva.tasks.physics import check_physics
 
 
 @dataclasses.dataclass
@@ -28,14 +47,11 @@ class TasksCommand:
     `dva compare` times each run to."""
 
     def run(self) -> None:
-        from dva.envs.registry import TARGET_RETURNS
-        from dva.tasks import make_task
-
         print(
             f"{'task':<18}{'state obs':>10}{'actions':>9}{'episode':>9}{'target':>8}{'physics':>9}{'substeps':>10}  "
             f"{'contact ke / kd / kf / mu':<28}pixel camera"
         )
-        for name in TASKS:
+        for name in task_names():
             task = make_task(name)
             c = task.penalty_contact
             contact = f"{c.ke:g} / {c.kd:g} / {c.kf:g} / {c.mu:g}" if len(task.contact_points.body) else "none"
@@ -63,12 +79,6 @@ class RenderCommand:
     seed: int = 0
 
     def run(self) -> None:
-        import jax
-        import numpy as np
-
-        from dva.envs.rendering import PixelRenderer
-        from dva.envs.visualize import image_grid, random_rollout, render_trajectory, save_png, write_video
-        from dva.tasks import make_task
 
         task = make_task(self.task)
         observations = PixelRenderer(task, self.num_envs, self.image_size)
@@ -103,12 +113,20 @@ def optional_fields(config_type: type, exclude: tuple[str, ...] = (), aliases: d
     return overrides
 
 
-# `dva train --GROUP.FIELD` flags, one group per config class of the registry.
+# `dva train --GROUP.FIELD` flags, one group per config class of the registry: every field but
+# those that define each of the group's algorithms (a field one of them fixes, another may set).
 FLAG_GROUPS: dict[str, Any] = {}
 for _entry in ALGORITHMS.values():
     FLAG_GROUPS.setdefault(_entry.flag_group, _entry)
+
+
+def _defined_by_all(group: str) -> tuple[str, ...]:
+    entries = [entry for entry in ALGORITHMS.values() if entry.flag_group == group]
+    return tuple(name for name in entries[0].defining if all(name in entry.defining for entry in entries))
+
+
 OVERRIDES = {
-    group: optional_fields(entry.config_type, exclude=tuple(entry.defining), aliases=entry.flag_aliases)
+    group: optional_fields(entry.config_type, exclude=_defined_by_all(group), aliases=entry.flag_aliases)
     for group, entry in FLAG_GROUPS.items()
 }
 
@@ -173,7 +191,6 @@ class TrainOptions:
         return overrides
 
     def run(self) -> None:
-        from dva.runner.training import train
 
         if self.run_dir is None:
             if self.resume:
@@ -182,8 +199,6 @@ class TrainOptions:
             self.run_dir = Path("runs") / name
         tracker = None
         if self.track:
-            from dva.runner.tracking import WandbTracker
-
             tracker = WandbTracker(self.wandb_project)
         run_dir = train(
             self.task,
@@ -250,22 +265,14 @@ class EvalCommand:
     seed: int = 0
 
     def run(self) -> None:
-        import jax
-        import numpy as np
-
-        from dva.envs.registry import is_dmc
-        from dva.envs.visualize import policy_strip, policy_video
-        from dva.runner.evaluation import random_policy_returns
-        from dva.runner.training import evaluate_run
-        from dva.tasks import make_task
 
         if self.strip is not None and self.strip_frames < 1:
             raise DvaUsageError(f"--strip-frames {self.strip_frames} is not allowed; use a number ≥ 1")
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
-        if is_dmc(spec.task):  # dm_control's physics: no random reference or video from here
+        task = simulated_task(spec.task, spec.physics)
+        if task is None:  # dm_control's physics: no random reference or video from here
             print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f}")
             return
-        task = make_task(spec.task, spec.physics)
         random = random_policy_returns(task, jax.random.PRNGKey(self.seed), len(returns))
         print(
             f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
@@ -303,7 +310,6 @@ class PlotCommand:
     """Also report, per setting, when its seeds first reached this return (e.g. 2× random)."""
 
     def run(self) -> None:
-        from dva.analysis.plots import plot_runs, write_summary
 
         for path in plot_runs(self.run_dirs, self.out, self.metric):
             print(f"wrote {path}")
@@ -313,8 +319,9 @@ class PlotCommand:
 
 @dataclasses.dataclass
 class ReportCommand:
-    """Regenerate the tables of docs/results.md, its summary and the README's status rows from the
-    data in docs/results/ (each section's section.toml says which); run it in the repository's root."""
+    """Regenerate the tables of a report's documents from the data in its folder of sections (each
+    section's section.toml says which; a summary.toml there gives summary rows): by default this
+    repository's docs/results.md, README.md and docs/index.md from docs/results/."""
 
     check: bool = False
     """Change nothing: print how the documents differ from their regenerated selves; exit 1 if they do."""
@@ -325,22 +332,28 @@ class ReportCommand:
     commit: str | None = None
     """With --stamp: the commit of the code that made the data."""
     root: Path = Path(".")
-    """The repository's root."""
+    """The folder the sections, documents and sections' sources are relative to."""
+    sections: Path = report.RESULTS
+    """The folder of sections, one subfolder each with its section.toml."""
+    documents: list[str] = dataclasses.field(default_factory=lambda: list(report.DOCUMENTS))
+    """The markdown documents whose <!-- generated: NAME --> blocks are filled."""
 
     def run(self) -> None:
-        from dva.analysis import report
-
-        if not (self.root / report.RESULTS).is_dir():
-            raise DvaUsageError(f"{self.root.resolve()} has no {report.RESULTS}: run it in the repository's root")
+        layout = report.Layout(self.root, self.sections, tuple(self.documents))
+        if not layout.folder.is_dir():
+            raise DvaUsageError(f"--sections {self.sections} is not a folder under {self.root.resolve()}")
+        missing = [document for document in layout.documents if not (layout.root / document).is_file()]
+        if missing:
+            raise DvaUsageError(f"--documents {' '.join(missing)} do not exist under {self.root.resolve()}")
         if self.stamp is not None:
             if self.commit is None:
                 raise DvaUsageError("--stamp needs --commit: the commit of the code that made the data")
-            report.stamp(self.root, self.stamp, self.commit)
+            report.stamp(layout, self.stamp, self.commit)
         if self.check:
-            diff = report.differences(self.root)
+            diff = report.differences(layout)
             print(diff or "the documents agree with their data")
             raise SystemExit(1 if diff else 0)
-        for path in report.write(self.root, self.plots):
+        for path in report.write(layout, self.plots):
             print(f"wrote {path}")
 
 
@@ -391,7 +404,6 @@ class CompareCommand(ManyRuns):
     """Run only these of the figure's algorithms (e.g. dva drqv2; default: all of them)."""
 
     def run(self) -> None:
-        from dva.analysis.compare import figure_settings, run_settings
 
         settings = figure_settings(self.figure, self.tasks, self.frames, self.algos)
         paths, markdown = run_settings(settings, self.out / self.figure, **self.run_options())
@@ -412,7 +424,6 @@ class SweepCommand(ManyRuns):
     out: Path = Path("sweeps")
 
     def run(self) -> None:
-        from dva.analysis.compare import grid_settings, run_settings
 
         settings = grid_settings(self.algo, self.tasks, self.grid)
         paths, markdown = run_settings(settings, self.out, **self.run_options())
@@ -460,7 +471,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         for task in [getattr(command, "task", None), *getattr(command, "tasks", [])]:
             if task is not None:
-                check_task_name(task)  # fail before any heavy set-up
+                check_env_name(task)  # fail before any heavy set-up
         if getattr(command, "physics", None) is not None:
             check_physics(command.physics)
         check_budget(getattr(command, "iterations", None), getattr(command, "minutes", None))

@@ -32,13 +32,9 @@ from dva.configs import (
     shac_preset,
     tdmpc2_preset,
 )
-from dva.envs.dmc import DMCEnv, make_dmc_task
-from dva.envs.observations import PixelObservations, Renderer
-from dva.envs.registry import is_dmc
+from dva.envs.factory import RendererKind, check_env_name, make_env
+from dva.envs.observations import DifferentiableEnv
 from dva.errors import DvaUsageError
-from dva.tasks import check_task_name, make_task
-
-RendererKind = Literal["warp", "soft"] | None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -246,7 +242,7 @@ def check_algo(algo: str) -> Algorithm:
 
 def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
     """The configuration of ``algo`` on ``task`` under ``preset``, with ``overrides`` (None: keep)."""
-    check_task_name(task)
+    check_env_name(task)
     entry = check_algo(algo)
     if preset not in PRESETS:
         raise DvaUsageError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
@@ -291,46 +287,29 @@ def saved_algo(algo: str, config: Any) -> str:
     return algo
 
 
-def make_renderer(kind: RendererKind, task, num_envs: int, image_size: int, mesh=None) -> Renderer | None:
-    """A renderer of ``kind`` for ``num_envs`` envs of ``task`` at ``image_size``² pixels; with a
-    device ``mesh``, Warp's renders each device's share of the envs on that device."""
-    if kind is None:
-        return None
-    if kind == "warp":
-        from dva.envs.rendering import PixelRenderer
-
-        if mesh is not None and mesh.size > 1:
-            from dva.runner.sharding import SplitRenderer
-
-            return SplitRenderer(lambda n, device: PixelRenderer(task, n, image_size, device=device), num_envs, mesh)
-        return PixelRenderer(task, num_envs, image_size)
-    from dva.envs.soft_rendering import SoftRenderer
-
-    return SoftRenderer(task, num_envs, image_size)
-
-
 def build_agent(
     task_name: str, algo: str, config: Any, physics: str | None = None, mesh=None, teacher: TeacherRun | None = None
 ) -> Agent:
     """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
     as long as the agent) and the agent; ``mesh``: the devices its environments split over;
     ``teacher``: the run it learns from, for an algorithm with a ``teacher_algo``
-    (:func:`dva.runner.training.load_teacher` loads one)."""
+    (:func:`dva.runner.compiled.load_teacher` loads one)."""
     entry = check_algo(algo)
     if (entry.teacher_algo is None) != (teacher is None):
         needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"
         raise DvaUsageError(f"teacher = {teacher and teacher.algo!r}: {algo} takes {needs}")
-    action_repeat = getattr(config, "action_repeat", 1)  # configs without one act every control step
-    env: PixelObservations | DMCEnv
-    if is_dmc(task_name):
-        if algo not in DMC_ALGOS:
-            raise DvaUsageError(
-                f"{algo} needs this project's differentiable tasks; on {task_name} use: {', '.join(DMC_ALGOS)}"
-            )
-        pixels = config.image_size if entry.renderer(config) is not None else None
-        env = DMCEnv(make_dmc_task(task_name), config.num_envs, pixels, config.frame_stack, action_repeat)
-    else:
-        task = make_task(task_name, physics)
-        renderer = make_renderer(entry.renderer(config), task, config.num_envs, config.image_size, mesh)
-        env = PixelObservations(task, config.num_envs, renderer, config.frame_stack, action_repeat)
+    env = make_env(
+        task_name,
+        config.num_envs,
+        renderer=entry.renderer(config),
+        image_size=config.image_size,
+        frame_stack=config.frame_stack,
+        action_repeat=getattr(config, "action_repeat", 1),  # configs without one act every control step
+        physics=physics,
+        mesh=mesh,
+    )
+    if algo not in DMC_ALGOS and not isinstance(env, DifferentiableEnv):
+        raise DvaUsageError(
+            f"{algo} needs this project's differentiable tasks; on {task_name} use: {', '.join(DMC_ALGOS)}"
+        )
     return entry.make_agent(env, config) if teacher is None else entry.make_agent(env, config, teacher)

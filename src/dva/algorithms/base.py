@@ -6,8 +6,9 @@ from __future__ import annotations
 from typing import Any, ClassVar, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 import jax
+import jax.numpy as jnp
 
-from dva.envs.observations import Observation, PixelObservations
+from dva.envs.observations import Env, Observation
 
 State = TypeVar("State")  # a pytree holding everything an iteration reads and writes
 Policy = TypeVar("Policy")  # a pytree: the parameters (and statistics) acting needs
@@ -23,18 +24,24 @@ class AgentConfig(Protocol):
     def num_envs(self) -> int: ...
 
 
-class Agent(Protocol[State, Policy]):
-    """An algorithm: a pure, jittable ``iteration`` over a pytree state, plus its policy.
+class Metrics(NamedTuple):
+    """What one iteration reports to the training loop (scalars; a pytree)."""
 
-    ``iteration`` returns scalar metrics: ``healthy`` (False stops training at the last
-    checkpoint: a NaN or exploding update), ``finished_return_sum`` and
-    ``finished_episodes`` (training episodes that ended this iteration), and the names in
-    ``metric_names``, which the loop logs to CSV and TensorBoard; an optional ``stop`` ends the
-    run normally (the agent's own stopping rule). The state counts its iterations in
-    ``state.iteration``.
+    healthy: jax.Array  # False stops training at the last checkpoint (a NaN or exploding update)
+    finished_return_sum: jax.Array  # the returns of the training episodes that ended in the iteration
+    finished_episodes: jax.Array  # how many ended
+    logged: dict[str, jax.Array]  # the agent's own numbers, by its metric_names: logged to CSV and TensorBoard
+    stop: jax.Array | None = None  # True ends the run normally (the agent's own stopping rule), if it has one
+
+
+class Agent(Protocol[State, Policy]):
+    """An algorithm: a pure, jittable ``iteration`` over a pytree state, returning the new state and
+    its :class:`Metrics`, plus its policy. The state counts its iterations in ``state.iteration``.
     """
 
-    env: PixelObservations  # what the agent trains in (its renderer stays alive with it)
+    @property
+    def env(self) -> Env:
+        """What the agent trains in (its renderer stays alive with it)."""
 
     @property
     def config(self) -> AgentConfig:
@@ -67,7 +74,7 @@ class Agent(Protocol[State, Policy]):
     def init(self, key: jax.Array) -> State:
         """Fresh networks, optimisers, environments (and buffers)."""
 
-    def iteration(self, state: State) -> tuple[State, dict[str, jax.Array]]:
+    def iteration(self, state: State) -> tuple[State, Metrics]:
         """One training iteration (the loop jits it and donates ``state``)."""
 
     def policy(self, state: State) -> Policy:
@@ -76,8 +83,9 @@ class Agent(Protocol[State, Policy]):
     def act(self, policy: Policy, observation: Observation) -> jax.Array:
         """The deterministic action in [−1, 1] for a batch of observations (evaluation)."""
 
-    def abort_reason(self, metrics: dict[str, Any]) -> str:
-        """Why an unhealthy iteration stops training, naming the value and the limit."""
+    def abort_reason(self, logged: dict[str, Any]) -> str:
+        """Why an unhealthy iteration stops training (from its :attr:`Metrics.logged`), naming the
+        value and the limit."""
 
 
 @runtime_checkable
@@ -96,10 +104,15 @@ class RecurrentAgent(Protocol):
         a memory that is sampled, as DreamerV3's latent state)."""
 
 
-def nan_loss_reason(metrics: dict[str, Any], names: tuple[str, ...]) -> str:
+def nan_loss_reason(logged: dict[str, Any], names: tuple[str, ...]) -> str:
     """Why an update with a NaN or infinite loss stops training: every loss in ``names`` with its value."""
-    losses = ", ".join(f"{name} {float(metrics[name]):.3g}" for name in names)
+    losses = ", ".join(f"{name} {float(logged[name]):.3g}" for name in names)
     return f"a NaN or infinite loss ({losses})"
+
+
+def all_finite(values: dict[str, jax.Array]) -> jax.Array:
+    """Whether every value is finite: the ``healthy`` of an agent whose every loss must be."""
+    return jnp.all(jnp.array([jnp.isfinite(value) for value in values.values()]))
 
 
 class TeacherRun(NamedTuple):

@@ -32,7 +32,7 @@ from flax import struct
 from dva.algorithms.augmentation import random_shift
 from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig
 from dva.algorithms.replay import NStepBatch
-from dva.envs.observations import Observation, PixelObservations
+from dva.envs.observations import Env, Observation
 from dva.networks import Projection, SquashedGaussianActor, TwinQ
 
 
@@ -84,7 +84,7 @@ class CURL(OffPolicyAgent):
     loss_names = ("critic_loss", "actor_loss", "contrastive_loss", "q_mean")
     config: CURLConfig
 
-    def __init__(self, env: PixelObservations, config: CURLConfig) -> None:
+    def __init__(self, env: Env, config: CURLConfig) -> None:
         super().__init__(env, config)
         self.actor = SquashedGaussianActor(self.task.action_dim, config.feature_dim, config.hidden)
         self.critic = TwinQ(config.feature_dim, config.hidden)

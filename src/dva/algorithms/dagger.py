@@ -29,11 +29,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.base import TeacherRun
-from dva.envs.observations import Observation, PixelObservations
-from dva.errors import DvaUsageError
+from dva.algorithms.base import Metrics, TeacherRun
+from dva.envs.observations import DifferentiableEnv, Observation
+from dva.errors import DvaUsageError, check_numbers
 from dva.networks import Actor
-from dva.tasks import EnvState
+from dva.tasks.base import EnvState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +61,7 @@ class DAggerConfig:
     iterations: int = 2000  # the run's length when no budget is given
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         if not 0.0 <= self.stop_loss_decay < 1.0:
             raise DvaUsageError(f"stop_loss_decay = {self.stop_loss_decay!r} is not allowed; use a number in [0, 1)")
 
@@ -89,7 +90,7 @@ class DAgger:
 
     def __init__(
         self,
-        env: PixelObservations,
+        env: DifferentiableEnv,
         config: DAggerConfig,
         teacher,
         teacher_policy,
@@ -142,7 +143,7 @@ class DAgger:
         mean, _ = self.student.apply(student, pixels)
         return jnp.mean(jnp.sum((jnp.tanh(mean) - action) ** 2, axis=-1))
 
-    def iteration(self, state: DAggerState) -> tuple[DAggerState, dict[str, jax.Array]]:
+    def iteration(self, state: DAggerState) -> tuple[DAggerState, Metrics]:
         """Roll out the mixture, relabel with the teacher, aggregate, fit the student."""
         cfg = self.config
         key, mix_key, update_key = jax.random.split(state.key, 3)
@@ -182,16 +183,14 @@ class DAgger:
             update, (state.student, state.opt_state), jax.random.split(update_key, cfg.updates_per_iteration)
         )
         bc_loss = losses[-1]
-        metrics = {
+        logged = {
             "bc_loss": bc_loss,
             "fresh_bc_loss": fresh_bc_loss,
             "fresh_bc_loss_average": average,
             "teacher_fraction": fraction,
-            "healthy": jnp.isfinite(bc_loss),
-            "stop": (average < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction),
-            "finished_return_sum": finished.sum(),
-            "finished_episodes": done.sum(),
         }
+        stop = (average < cfg.stop_bc_loss) & (fraction <= cfg.stop_teacher_fraction)
+        metrics = Metrics(jnp.isfinite(bc_loss), finished.sum(), done.sum(), logged, stop)
         return state.replace(
             student=student,
             opt_state=opt_state,
@@ -212,11 +211,11 @@ class DAgger:
         mean, _ = self.student.apply(policy, observation["pixels"])
         return jnp.tanh(mean)
 
-    def abort_reason(self, metrics: dict) -> str:
-        return f"behaviour-cloning loss {float(metrics['bc_loss']):.3g} is NaN or infinite"
+    def abort_reason(self, logged: dict) -> str:
+        return f"behaviour-cloning loss {float(logged['bc_loss']):.3g} is NaN or infinite"
 
 
-def make_dagger(env: PixelObservations, config: DAggerConfig, teacher: TeacherRun) -> DAgger:
+def make_dagger(env: DifferentiableEnv, config: DAggerConfig, teacher: TeacherRun) -> DAgger:
     """The student of ``teacher``, which must act on the state (SHAC or DPG on the state)."""
     if getattr(teacher.agent.config, "observation", None) != "state":
         raise DvaUsageError(

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.base import nan_loss_reason
+from dva.algorithms.base import Metrics, all_finite, nan_loss_reason
 from dva.algorithms.model_based_math import (
     categorical_cross_entropy,
     kl_balance_losses,
@@ -59,10 +59,10 @@ from dva.algorithms.model_based_math import (
 )
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.algorithms.replay import SequenceReplay, Step
-from dva.envs.observations import Observation, PixelObservations
-from dva.errors import DvaUsageError
+from dva.envs.observations import Env, Observation
+from dva.errors import DvaUsageError, check_numbers
 from dva.networks import RSSM, ConvDecoder, ConvEncoder, DreamerMLP, MLPEncoder, scale_pixels
-from dva.tasks import EnvState
+from dva.tasks.base import EnvState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +115,7 @@ class DreamerV3Config:
     iterations: int = 100_000  # the run's length when no budget is given
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         for name in ("num_envs", "action_repeat", "batch_size", "batch_length", "horizon"):
             if getattr(self, name) < 1:
                 raise DvaUsageError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
@@ -222,7 +223,7 @@ class DreamerV3:
         "exploration",
     )
 
-    def __init__(self, env: PixelObservations, config: DreamerV3Config) -> None:
+    def __init__(self, env: Env, config: DreamerV3Config) -> None:
         self.pixels = config.observation == "pixels"
         if env.num_envs != config.num_envs or env.frame_stack != 1 or env.has_pixels != self.pixels:
             seen = "renders one frame each" if self.pixels else "renders nothing"
@@ -593,7 +594,7 @@ class DreamerV3:
         state = seed_replay(self.env, self.replay, state, self.seed_rounds, seed_key, stored=self.observed)
         return state.replace(latent=latent)  # the actor starts from a fresh memory
 
-    def iteration(self, state: DreamerState) -> tuple[DreamerState, dict[str, jax.Array]]:
+    def iteration(self, state: DreamerState) -> tuple[DreamerState, Metrics]:
         """``collect_steps`` steps of every env with the actor, then ``updates`` updates."""
         key, collect_key, update_key = jax.random.split(state.key, 3)
 
@@ -608,14 +609,10 @@ class DreamerV3:
         state, (finished, done) = jax.lax.scan(
             collect_step, state, jax.random.split(collect_key, self.config.collect_steps)
         )
-        state, metrics = jax.lax.scan(self.update, state, jax.random.split(update_key, self.config.updates))
-        metrics = {name: jnp.mean(value) for name, value in metrics.items()}
-        metrics.update(
-            healthy=jnp.all(jnp.array([jnp.isfinite(value) for value in metrics.values()])),
-            finished_return_sum=finished.sum(),
-            finished_episodes=done.sum(),
-        )
+        state, losses = jax.lax.scan(self.update, state, jax.random.split(update_key, self.config.updates))
+        logged = {name: jnp.mean(value) for name, value in losses.items()}
+        metrics = Metrics(all_finite(logged), finished.sum(), done.sum(), logged)
         return state.replace(key=key, iteration=state.iteration + 1), metrics
 
-    def abort_reason(self, metrics: dict) -> str:
-        return nan_loss_reason(metrics, self.metric_names)
+    def abort_reason(self, logged: dict) -> str:
+        return nan_loss_reason(logged, self.metric_names)

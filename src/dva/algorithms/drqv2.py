@@ -30,7 +30,7 @@ from flax import struct
 from dva.algorithms.augmentation import random_shift
 from dva.algorithms.off_policy import OffPolicyAgent, OffPolicyConfig
 from dva.algorithms.replay import NStepBatch
-from dva.envs.observations import Observation, PixelObservations
+from dva.envs.observations import Env, Observation
 from dva.errors import DvaUsageError
 from dva.networks import DeterministicActor, RunningStats, TwinQ
 
@@ -83,7 +83,7 @@ class DrQV2(OffPolicyAgent):
     loss_names: tuple[str, ...] = ("critic_loss", "actor_loss", "q_mean")
     config: DrQV2Config
 
-    def __init__(self, env: PixelObservations, config: DrQV2Config) -> None:
+    def __init__(self, env: Env, config: DrQV2Config) -> None:
         super().__init__(env, config)
         self.actor = DeterministicActor(self.task.action_dim, config.feature_dim, config.hidden)
         self.critic = TwinQ(config.feature_dim, config.hidden)

@@ -19,12 +19,12 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.algorithms.base import nan_loss_reason
+from dva.algorithms.base import Metrics, all_finite, nan_loss_reason
 from dva.algorithms.replay import FrameReplay, NStepBatch, SequenceReplay, Step
-from dva.envs.observations import PixelObservations
-from dva.errors import DvaUsageError
+from dva.envs.observations import Env
+from dva.errors import DvaUsageError, check_numbers
 from dva.networks import PixelEncoder
-from dva.tasks import EnvState
+from dva.tasks.base import EnvState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +48,7 @@ class OffPolicyConfig:
     iterations: int = 100_000  # the run's length when no budget is given
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         for name in ("num_envs", "action_repeat", "updates_per_iteration", "batch_size", "n_step"):
             if getattr(self, name) < 1:
                 raise DvaUsageError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
@@ -71,7 +72,7 @@ def newest_frame(env: EnvState) -> jax.Array:
 
 
 def collect_into_replay(
-    env: PixelObservations,
+    env: Env,
     replay: SequenceReplay,
     state,
     action: jax.Array,
@@ -128,7 +129,7 @@ def seed_rounds(seed_steps: int, steps_per_round: int, sequence_length: int) -> 
 
 
 def seed_replay(
-    env: PixelObservations,
+    env: Env,
     replay: SequenceReplay,
     state,
     rounds: int,
@@ -155,7 +156,7 @@ class OffPolicyAgent(abc.ABC):
     loss_names: tuple[str, ...]  # the update's metrics
     optimizer: optax.GradientTransformation  # the critic's (and encoder's), made by the agent
 
-    def __init__(self, env: PixelObservations, config: OffPolicyConfig) -> None:
+    def __init__(self, env: Env, config: OffPolicyConfig) -> None:
         if not env.has_pixels or env.num_envs != config.num_envs:
             raise DvaUsageError(f"{type(self).__name__} needs an env wrapper that renders {config.num_envs} envs")
         self.env, self.task, self.config = env, env.task, config
@@ -265,7 +266,7 @@ class OffPolicyAgent(abc.ABC):
             self.env, self.replay, state, action, self.config.reward_scale, keep_state=self.keeps_state
         )
 
-    def iteration(self, state: OffPolicyState) -> tuple[OffPolicyState, dict[str, jax.Array]]:
+    def iteration(self, state: OffPolicyState) -> tuple[OffPolicyState, Metrics]:
         """One exploring step of every env into the replay, then ``updates_per_iteration`` updates."""
         cfg = self.config
         key, act_key, update_key = jax.random.split(state.key, 3)
@@ -281,14 +282,9 @@ class OffPolicyAgent(abc.ABC):
             one_update, state.learner, jax.random.split(update_key, cfg.updates_per_iteration)
         )
         losses = {name: jnp.mean(losses[name]) for name in self.loss_names}
-        metrics = {
-            **losses,
-            "exploration": exploration,
-            "healthy": jnp.all(jnp.array([jnp.isfinite(value) for value in losses.values()])),
-            "finished_return_sum": finished.sum(),
-            "finished_episodes": state.env.done.sum(),
-        }
+        logged = {**losses, "exploration": exploration}
+        metrics = Metrics(all_finite(losses), finished.sum(), state.env.done.sum(), logged)
         return state.replace(learner=learner, key=key, iteration=state.iteration + 1), metrics
 
-    def abort_reason(self, metrics: dict) -> str:
-        return nan_loss_reason(metrics, self.loss_names)
+    def abort_reason(self, logged: dict) -> str:
+        return nan_loss_reason(logged, self.loss_names)

@@ -24,10 +24,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from dva.envs.observations import Observation, PixelObservations
-from dva.errors import DvaUsageError
+from dva.algorithms.base import Metrics
+from dva.envs.observations import DifferentiableEnv, Observation
+from dva.errors import DvaUsageError, check_numbers
 from dva.networks import Actor, Critic, RunningStats
-from dva.tasks import EnvState
+from dva.tasks.base import EnvState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,6 +92,7 @@ class SHACConfig:
     also the run's length when neither an iteration count nor a time budget is given."""
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         for name in ("num_envs", "horizon", "critic_iterations", "critic_minibatches", "image_size", "frame_stack"):
             value = getattr(self, name)
             if not isinstance(value, int) or value <= 0:
@@ -147,6 +149,21 @@ class Trajectory(struct.PyTreeNode):
     boundary: jax.Array  # the episode or the horizon ends after this step (no λ-mixing past it)
 
 
+class StepRecord(NamedTuple):
+    """What one step of :meth:`SHAC.rollout`'s scan records (stacked to (h, N, ...) by the scan)."""
+
+    ended: jax.Array  # discounted return (+ bootstrap) of an episode that ended at this step, else 0
+    critic_obs: jax.Array  # normalised state at the start of the step (the critic's input)
+    reward: jax.Array
+    next_value: jax.Array  # V'(state reached), 0 where the episode terminated
+    done: jax.Array  # the episode ended at this step
+    finished_return: jax.Array  # undiscounted return of the episode that ended here, else 0
+    visited_obs: jax.Array  # raw state reached, for the observation statistics
+    observation: jax.Array  # the actor's input
+    pre_tanh: jax.Array  # the action taken, before its tanh
+    actor_vjp: Any  # the actor's kept backward pass (decoupled, chunk 0), else None
+
+
 class Rollout(NamedTuple):
     """The by-products of :meth:`SHAC.rollout` beside its loss."""
 
@@ -165,7 +182,7 @@ class SHAC:
     prior_cost = (0.0, 0)
     batch_fields = ("env", "episode_return")
 
-    def __init__(self, env: PixelObservations, config: SHACConfig) -> None:
+    def __init__(self, env: DifferentiableEnv, config: SHACConfig) -> None:
         if env.num_envs != config.num_envs:
             raise DvaUsageError(f"the env wrapper runs {env.num_envs} envs; config.num_envs is {config.num_envs}")
         if config.observation == "pixels":
@@ -308,38 +325,45 @@ class SHAC:
                 jnp.where(env.done, 0.0, discounted_sum),
                 jnp.where(env.done, 0.0, episode_return),
             )
-            out = (
-                ended,
-                critic_obs,
-                jax.lax.stop_gradient(env.reward),
-                jax.lax.stop_gradient(next_value),
-                env.done,
-                finished_return,
-                env.obs,
-                observation,
-                pre_tanh,
-                actor_vjp,
+            record = StepRecord(
+                ended=ended,
+                critic_obs=critic_obs,
+                reward=jax.lax.stop_gradient(env.reward),
+                next_value=jax.lax.stop_gradient(next_value),
+                done=env.done,
+                finished_return=finished_return,
+                visited_obs=env.obs,
+                observation=observation,
+                pre_tanh=pre_tanh,
+                actor_vjp=actor_vjp,
             )
-            return carry, out
+            return carry, record
 
         num_envs = cfg.num_envs
         carry = (train.env, jnp.ones(num_envs), jnp.zeros(num_envs), train.episode_return)
         offsets = jnp.zeros_like(noise) if action_offset is None else action_offset
-        (env, discount, discounted_sum, episode_return), out = jax.lax.scan(step, carry, (noise, offsets))
-        ended, critic_obs, reward, next_value, done, finished_return, visited_obs, observations, actions, vjps = out
+        (env, discount, discounted_sum, episode_return), steps = jax.lax.scan(step, carry, (noise, offsets))
         # Episodes still running at the end of the window bootstrap from the target critic.
-        tail = jnp.where(done[-1], 0.0, discounted_sum + discount * value(env.obs))
-        loss = -(ended.sum() + tail.sum()) / (num_envs * len(noise)) + cfg.pre_tanh_penalty * jnp.mean(actions**2)
-        boundary = done.at[-1].set(True)
-        trajectory = Trajectory(critic_obs=critic_obs, reward=reward, next_value=next_value, boundary=boundary)
+        tail = jnp.where(steps.done[-1], 0.0, discounted_sum + discount * value(env.obs))
+        loss = -(steps.ended.sum() + tail.sum()) / (num_envs * len(noise))
+        loss = loss + cfg.pre_tanh_penalty * jnp.mean(steps.pre_tanh**2)
+        boundary = steps.done.at[-1].set(True)
+        trajectory = Trajectory(
+            critic_obs=steps.critic_obs, reward=steps.reward, next_value=steps.next_value, boundary=boundary
+        )
         stats = {
-            "finished_return_sum": finished_return.sum(),
-            "finished_episodes": done.sum(),
-            "mean_reward": reward.mean(),
+            "finished_return_sum": steps.finished_return.sum(),
+            "finished_episodes": steps.done.sum(),
+            "mean_reward": steps.reward.mean(),
         }
         # The actor's inputs, pre-tanh actions and (decoupled) backward passes, per step.
-        taken = {"observations": observations, "actions": actions, "actor_vjp": vjps, "states": critic_obs}
-        return loss, Rollout(env, episode_return, trajectory, visited_obs, stats, taken)
+        taken = {
+            "observations": steps.observation,
+            "actions": steps.pre_tanh,
+            "actor_vjp": steps.actor_vjp,
+            "states": steps.critic_obs,
+        }
+        return loss, Rollout(env, episode_return, trajectory, steps.visited_obs, stats, taken)
 
     def actor_gradient(self, actor_params: dict, train: TrainState, noise: jax.Array):
         """``(loss, rollout, ∇θ loss)`` of :meth:`rollout` (``rollout`` its :class:`Rollout`).
@@ -435,7 +459,7 @@ class SHAC:
         return params, opt_state, losses[-1].mean()
 
     # ---- one iteration ------------------------------------------------------------------------
-    def iteration(self, train: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
+    def iteration(self, train: TrainState) -> tuple[TrainState, Metrics]:
         """One training iteration: rollout + actor step, critic fit, target update."""
         cfg = self.config
         key, noise_key, critic_key = jax.random.split(train.key, 3)
@@ -472,14 +496,9 @@ class SHAC:
             key=key,
             iteration=train.iteration + 1,
         )
-        metrics = {
-            "actor_loss": loss,
-            "actor_grad_norm": grad_norm,
-            "critic_loss": critic_loss,
-            "healthy": healthy,
-            **stats,
-        }
-        return train, metrics
+        logged = {"actor_loss": loss, "actor_grad_norm": grad_norm, "critic_loss": critic_loss}
+        logged |= {name: stats[name] for name in self.metric_names if name in stats}
+        return train, Metrics(healthy, stats["finished_return_sum"], stats["finished_episodes"], logged)
 
     # ---- the agent's policy ------------------------------------------------------------------
     def policy(self, train: TrainState) -> tuple[dict, RunningStats]:
@@ -491,9 +510,9 @@ class SHAC:
         actor_params, obs_stats = policy
         return jnp.tanh(self.pre_tanh_action(actor_params, self.actor_input(observation, obs_stats), None))
 
-    def abort_reason(self, metrics: dict) -> str:
+    def abort_reason(self, logged: dict) -> str:
         return (
-            f"actor gradient norm {float(metrics['actor_grad_norm']):.3g} is NaN or above "
+            f"actor gradient norm {float(logged['actor_grad_norm']):.3g} is NaN or above "
             f"abort_grad_norm = {self.config.abort_grad_norm:.3g}"
         )
 

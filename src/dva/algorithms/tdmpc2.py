@@ -57,14 +57,14 @@ import optax
 from flax import struct
 
 from dva.algorithms.augmentation import random_shift
-from dva.algorithms.base import nan_loss_reason
+from dva.algorithms.base import Metrics, all_finite, nan_loss_reason
 from dva.algorithms.model_based_math import categorical_cross_entropy, symlog_bins, twohot, twohot_decode
 from dva.algorithms.off_policy import collect_into_replay, empty_step, newest_frame, seed_replay, seed_rounds
 from dva.algorithms.replay import SequenceReplay, Step, stack_at
-from dva.envs.observations import Observation, PixelObservations
-from dva.errors import DvaUsageError
+from dva.envs.observations import Env, Observation
+from dva.errors import DvaUsageError, check_numbers
 from dva.networks.tdmpc2 import NormedMLP, QEnsemble, TDMPC2PixelEncoder, concat_action, pixel_latent_dim
-from dva.tasks import EnvState
+from dva.tasks.base import EnvState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,6 +118,7 @@ class TDMPC2Config:
     iterations: int = 100_000  # the run's length when no budget is given
 
     def __post_init__(self) -> None:
+        check_numbers(self)
         for name in ("num_envs", "action_repeat", "updates_per_iteration", "batch_size", "horizon", "num_q"):
             if getattr(self, name) < 1:
                 raise DvaUsageError(f"{name} = {getattr(self, name)!r} is not allowed; use an int ≥ 1")
@@ -187,7 +188,7 @@ class TDMPC2:
         "exploration",
     )
 
-    def __init__(self, env: PixelObservations, config: TDMPC2Config) -> None:
+    def __init__(self, env: Env, config: TDMPC2Config) -> None:
         self.pixels = config.observation == "pixels"
         if env.num_envs != config.num_envs or env.has_pixels != self.pixels:
             seen = "renders" if self.pixels else "renders nothing"
@@ -559,23 +560,19 @@ class TDMPC2:
         )
         return seed_replay(self.env, self.replay, state, self.seed_rounds, seed_key, stored=self.observed)
 
-    def iteration(self, state: TDMPC2State) -> tuple[TDMPC2State, dict[str, jax.Array]]:
+    def iteration(self, state: TDMPC2State) -> tuple[TDMPC2State, Metrics]:
         """One planned, exploring step of every env into the replay, then ``updates_per_iteration`` updates."""
         key, act_key, update_key = jax.random.split(state.key, 3)
         plans = jnp.where(state.first[:, None, None], 0.0, state.plan)  # a new episode plans afresh
         action, plan, std = self.act_batch(state.params, self.observation(state.env), plans, act_key, explore=True)
         state, finished = collect_into_replay(self.env, self.replay, state, action, stored=self.observed)
-        state, metrics = jax.lax.scan(
+        state, losses = jax.lax.scan(
             self.update, state.replace(plan=plan), jax.random.split(update_key, self.config.updates_per_iteration)
         )
-        metrics = {name: jnp.mean(value) for name, value in metrics.items()}
-        metrics.update(
-            exploration=jnp.mean(std),
-            healthy=jnp.all(jnp.array([jnp.isfinite(value) for value in metrics.values()])),
-            finished_return_sum=finished.sum(),
-            finished_episodes=state.first.sum(),
-        )
+        logged = {name: jnp.mean(value) for name, value in losses.items()}
+        logged["exploration"] = jnp.mean(std)
+        metrics = Metrics(all_finite(logged), finished.sum(), state.first.sum(), logged)
         return state.replace(key=key, iteration=state.iteration + 1), metrics
 
-    def abort_reason(self, metrics: dict) -> str:
-        return nan_loss_reason(metrics, self.metric_names)
+    def abort_reason(self, logged: dict) -> str:
+        return nan_loss_reason(logged, self.metric_names)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import os
+import platform
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -53,8 +55,6 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 def machine_description() -> str:
     """One line naming the backend, device and CPU count the numbers came from."""
-    import os
-    import platform
 
     device = jax.devices()[0]
     return f"{platform.machine()} {os.cpu_count()} cores, JAX {jax.__version__} on {device.platform} ({device.device_kind})"  # noqa: E501

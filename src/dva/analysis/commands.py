@@ -7,8 +7,14 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from dva.analysis.bench import machine_description
+from dva.analysis.breakdown import measure_iteration, write_breakdown_report
+from dva.analysis.cost import DVA_VARIANTS, measure_costs, write_cost_report
+from dva.analysis.gradients import compare_gradients, write_gradient_report
+from dva.analysis.gradnorm import gradient_norms, write_gradnorm_report
+from dva.envs.rendering import check_image_size
 from dva.errors import DvaUsageError
-from dva.tasks import TASKS
+from dva.tasks import task_names
 
 
 @dataclasses.dataclass
@@ -54,7 +60,6 @@ class GradientsAnalysis:
     horizon: int | None = None
 
     def run(self) -> None:
-        from dva.analysis.gradients import compare_gradients, write_gradient_report
 
         rows = compare_gradients(
             self.task, self.iterations, self.every, self.seed, num_envs=self.num_envs, horizon=self.horizon
@@ -74,8 +79,6 @@ class GradnormAnalysis(SizeOverrides):
     """The D.Va variant compared with visual SHAC: dva (the paper's) | dva-privileged."""
 
     def run(self) -> None:
-        from dva.analysis.cost import DVA_VARIANTS
-        from dva.analysis.gradnorm import gradient_norms, write_gradnorm_report
 
         if self.algo not in DVA_VARIANTS:
             raise DvaUsageError(f"--algo {self.algo} is not allowed; use one of: {', '.join(DVA_VARIANTS)}")
@@ -91,7 +94,7 @@ class CostAnalysis:
     visual SHAC, same envs/horizon/images on every task, printed as ratios. Writes
     OUT/cost/cost.{csv,png,md} and cost_ratios.csv."""
 
-    tasks: list[str] = dataclasses.field(default_factory=lambda: list(TASKS))
+    tasks: list[str] = dataclasses.field(default_factory=task_names)
     num_envs: int = 32
     horizon: int = 32
     image_size: int = 84
@@ -107,9 +110,6 @@ class CostAnalysis:
     out: Path = Path("analysis")
 
     def run(self) -> None:
-        from dva.analysis.bench import machine_description
-        from dva.analysis.cost import measure_costs, write_cost_report
-        from dva.envs.rendering import check_image_size
 
         check_image_size(self.image_size, self.image_size)  # fail before any compile
         rows = measure_costs(
@@ -133,8 +133,6 @@ class BreakdownAnalysis(SizeOverrides):
     algo: str = "dva"
 
     def run(self) -> None:
-        from dva.analysis.bench import machine_description
-        from dva.analysis.breakdown import measure_iteration, write_breakdown_report
 
         config, times = measure_iteration(self.task, self.algo, self.preset, self.seed, **self.overrides())
         title = (

@@ -21,6 +21,7 @@ rules.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import os
 import queue
@@ -34,8 +35,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Literal
 
-from dva.envs.registry import TARGET_RETURNS
+from dva.algorithms import check_algo, make_config
+from dva.analysis.plots import plot_runs, write_summary
 from dva.errors import DvaUsageError
+from dva.runner.checkpoint import RunSpec, checkpoint_manager
+from dva.runner.logs import read_progress
+from dva.runner.runtime import configure
+from dva.runner.training import train
+from dva.tasks import TARGET_RETURNS
 
 FigureName = Literal["fig4", "fig6", "fig7", "fig13", "ablation-value", "ablation-frames"]
 FIGURES: tuple[str, ...] = typing.get_args(FigureName)
@@ -127,7 +134,6 @@ def is_complete(run_dir: Path, minutes: float) -> bool:
 
 def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path) -> str:
     """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
-    from dva.runner.training import checkpoint_manager, read_progress, train
 
     if (run_dir / "run.json").exists():
         check_same_setting(setting, preset, run_dir)
@@ -152,8 +158,6 @@ def check_same_setting(setting: Setting, preset: str, run_dir: Path) -> None:
     """A run folder is reused only for the algorithm and config it was trained with: a clear error
     naming what differs where ``setting`` under ``preset`` asks for another (a changed preset, an
     old run of a renamed variant)."""
-    from dva.algorithms import make_config
-    from dva.runner.training import RunSpec
 
     spec = RunSpec.read(run_dir / "run.json")
     wanted = make_config(setting.task, setting.algo, preset, **dict(setting.overrides))
@@ -272,7 +276,7 @@ def run_on_ray(jobs: Sequence[Job], cpus: float, gpus: float) -> list[str]:
     """Run ``jobs`` as Ray tasks of ``cpus`` CPUs and ``gpus`` GPUs each, on the cluster at
     ``RAY_ADDRESS`` or on a local one that Ray starts; returns what each did. Every job runs even
     when another fails; then the first failure is raised."""
-    try:
+    try:  # the 'ray' extra, imported only for --backend ray
         import ray
     except ImportError:
         raise ImportError("--backend ray needs the 'ray' extra: pip install 'dva[ray]'") from None
@@ -284,9 +288,7 @@ def run_on_ray(jobs: Sequence[Job], cpus: float, gpus: float) -> list[str]:
 
     @ray.remote(num_cpus=cpus, num_gpus=gpus)
     def run(job_json: str) -> str:
-        import dva
-
-        dva.configure()  # a Ray worker is a fresh process
+        configure()  # a Ray worker is a fresh process
         return Job.from_json(job_json).run()
 
     futures = [run.remote(job.to_json()) for job in jobs]
@@ -317,11 +319,10 @@ def run_settings(
 ) -> tuple[list[Path], str]:
     """Run (or complete) every setting × seed under ``out/runs`` for ``minutes`` each, then write
     the curves and the table (time to ``threshold``, or else to each task's entry in
-    :data:`~dva.envs.registry.TARGET_RETURNS`) into ``out``. ``workers`` > 1 runs that many at
+    :data:`~dva.tasks.TARGET_RETURNS`) into ``out``. ``workers`` > 1 runs that many at
     once, each on its own share of the CPUs; ``backend="ray"`` runs them as Ray tasks of
     ``cpus_per_run`` CPUs and ``gpus_per_run`` GPUs. Settings come from :func:`figure_settings`
     (``dva compare``) or :func:`grid_settings` (``dva sweep``)."""
-    from dva.analysis.plots import plot_runs, write_summary  # matplotlib: only when plotting
 
     if backend not in BACKENDS:
         raise DvaUsageError(f"backend {backend!r} is not allowed; use one of: {', '.join(BACKENDS)}")
@@ -363,9 +364,6 @@ def grid_settings(algo: str, tasks: Sequence[str], grid: Sequence[str]) -> list[
     """One setting per task and combination of ``grid``'s values; each entry is ``FIELD=V1,V2,…``
     for a field of ``algo``'s config, values read as JSON where they parse (numbers, true/false,
     lists) and as strings otherwise."""
-    import itertools
-
-    from dva.algorithms import check_algo
 
     fields = {field.name for field in dataclasses.fields(check_algo(algo).config_type)}
     axes: list[list[tuple[str, object]]] = []
@@ -392,7 +390,5 @@ def _values(text: str) -> list:
 
 
 if __name__ == "__main__":  # one run of a comparison in a child process (see launch_pinned)
-    from dva.runner.runtime import configure
-
     configure()
     print(Job.from_json(sys.argv[1]).run())

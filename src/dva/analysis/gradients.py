@@ -47,8 +47,8 @@ def compare_gradients(
             rows.append({"iteration": i, **{k: float(v) for k, v in measured.items()}, "train_return": train_return})
         if i < iterations:
             state, metrics = step(state)
-            if metrics["finished_episodes"] > 0:
-                train_return = float(metrics["finished_return_sum"] / metrics["finished_episodes"])
+            if metrics.finished_episodes > 0:
+                train_return = float(metrics.finished_return_sum / metrics.finished_episodes)
     return rows
 
 

@@ -59,7 +59,7 @@ def gradient_norms(
             norms = list(curve["actor_grad_norm"])
             steps = list(range(1, len(norms) + 1))
             if diverged is not None:  # the rejected update's norm was not logged
-                norms.append(float(diverged.metrics["actor_grad_norm"]))
+                norms.append(float(diverged.logged["actor_grad_norm"]))
                 steps.append(diverged.iteration)
             rows += [{"task": task, "algo": algo, "iteration": i, "actor_grad_norm": g} for i, g in zip(steps, norms)]
             finite = np.array([g for g in norms if np.isfinite(g)])

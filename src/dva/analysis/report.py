@@ -1,6 +1,7 @@
-"""The results report (``dva report``): every table of ``docs/results.md``, its summary and the
-README's status rows generated from the data kept in ``docs/results/``, so no number can drift
-from its data.
+"""The results report (``dva report``): every table of a set of markdown documents generated from the
+data kept in a folder of sections, so no number can drift from its data. This repository's is
+``docs/results/`` with ``docs/results.md``, ``README.md`` and ``docs/index.md`` (the defaults); a
+user's own runs make one the same way (``dva report --sections my_results --documents report.md``).
 
 Each section's folder holds its data (CSV files) and a ``section.toml`` that says how they were
 made and what to show::
@@ -46,12 +47,34 @@ from pathlib import Path
 
 import numpy as np
 
+from dva.algorithms import make_config
 from dva.analysis.bench import markdown_table
 from dva.analysis.plots import LATE_POINTS, PublishedCurve, plot_curves
 from dva.errors import DvaUsageError
 
 RESULTS = Path("docs/results")
 DOCUMENTS = ("docs/results.md", "README.md", "docs/index.md")
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Where a report lives: its ``root`` (which sections' ``sources`` are relative to), its folder
+    of ``sections`` and the ``documents`` whose generated blocks it fills (both relative to root).
+    An optional ``summary.toml`` in the sections folder holds the summary rows."""
+
+    root: Path = Path(".")
+    sections: Path = RESULTS
+    documents: tuple[str, ...] = DOCUMENTS
+
+    @property
+    def folder(self) -> Path:
+        return self.root / self.sections
+
+    def summary(self) -> dict:
+        path = self.folder / "summary.toml"
+        return tomllib.loads(path.read_text()) if path.exists() else {}
+
+
 BLOCK = re.compile(r"(<!-- generated: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- end -->)", re.S)
 PLACEHOLDER = re.compile(r"\{\{(.+?)\}\}")
 STALE_MARK = "†"
@@ -216,14 +239,15 @@ class Section:
     name: str
     folder: Path
     meta: dict
+    shown: Path  # the folder as the documents name it (relative to the root)
 
     @classmethod
-    def load(cls, root: Path, name: str) -> Section:
-        folder = root / RESULTS / name
+    def load(cls, layout: Layout, name: str) -> Section:
+        folder = layout.folder / name
         path = folder / "section.toml"
         if not path.exists():
-            raise DvaUsageError(f"no results section {name!r}: {path.relative_to(root)} does not exist")
-        return cls(name, folder, tomllib.loads(path.read_text()))
+            raise DvaUsageError(f"no results section {name!r}: {path.relative_to(layout.root)} does not exist")
+        return cls(name, folder, tomllib.loads(path.read_text()), layout.sections / name)
 
     def runs(self, setting: str) -> list[Run]:
         settings = self.meta.get("runs", {})
@@ -231,20 +255,19 @@ class Section:
             raise DvaUsageError(f"section {self.name}: no setting {setting!r}; it has: {', '.join(settings)}")
         return [Run.load(self.folder / file) for file in settings[setting]]
 
-    def fingerprint(self, root: Path) -> str:
+    def fingerprint(self, layout: Layout) -> str:
         """The hash of the code and configs the section measures, as they are now."""
-        from dva.algorithms import make_config
 
         digest = hashlib.sha256()
         for source in sorted(self.meta.get("sources", [])):
-            digest.update(source.encode() + (root / source).read_bytes())
+            digest.update(source.encode() + (layout.root / source).read_bytes())
         for task, algo, preset in self.meta.get("configs", []):
             config = dataclasses.asdict(make_config(task, algo, preset))
             digest.update(json.dumps(config, sort_keys=True, default=str).encode())
         return digest.hexdigest()[:16]
 
-    def is_stale(self, root: Path) -> bool:
-        return self.meta.get("fingerprint") != self.fingerprint(root)
+    def is_stale(self, layout: Layout) -> bool:
+        return self.meta.get("fingerprint") != self.fingerprint(layout)
 
     def tables(self) -> list[str]:
         tables = []
@@ -261,15 +284,15 @@ class Section:
             tables.append(markdown_table([table.get("first", "setting")] + [h for h, _ in columns], rows) + "\n")
         return tables
 
-    def block(self, root: Path) -> str:
+    def block(self, layout: Layout) -> str:
         """The generated part of the section: how it was made, stale or not, and its tables."""
         meta = self.meta
         code = f"`{meta['commit']}`" if re.fullmatch(r"[0-9a-f]{7,40}", meta["commit"]) else meta["commit"]
         lines = [
             f"Command: `{meta['command']}`  ",
-            f"Machine: {meta['machine']}; code {code}; data in `docs/results/{self.name}/`.",
+            f"Machine: {meta['machine']}; code {code}; data in `{self.shown.as_posix()}/`.",
         ]
-        if self.is_stale(root):
+        if self.is_stale(layout):
             lines.append(
                 "\n**Stale**: the code or configuration this measures has changed since it was "
                 "measured; re-run the command to bring it up to date."
@@ -299,7 +322,7 @@ class Section:
         )
 
 
-def placeholder(root: Path, text: str) -> str:
+def placeholder(layout: Layout, text: str) -> str:
     """The value of one ``{{…}}``: ``section|setting|column`` or ``section/file.csv|key=value|field:format``."""
     parts = [part.strip() for part in text.split("|")]
     if len(parts) != 3:
@@ -307,77 +330,77 @@ def placeholder(root: Path, text: str) -> str:
     where, pick, what = parts
     if where.endswith(".csv"):
         key, _, value = pick.partition("=")
-        rows = [r for r in csv_rows(root / RESULTS / where) if r.get(key) == value]
+        rows = [r for r in csv_rows(layout.folder / where) if r.get(key) == value]
         if len(rows) != 1:
             raise DvaUsageError(f"placeholder {{{{{text}}}}}: {len(rows)} rows of {where} have {key} = {value!r}")
-        section = Section.load(root, where.split("/")[0])
-        return csv_field(rows[0], what) + STALE_MARK * section.is_stale(root)
-    section = Section.load(root, where)
-    return run_column(what)[1](section.runs(pick)) + STALE_MARK * section.is_stale(root)
+        section = Section.load(layout, where.split("/")[0])
+        return csv_field(rows[0], what) + STALE_MARK * section.is_stale(layout)
+    section = Section.load(layout, where)
+    return run_column(what)[1](section.runs(pick)) + STALE_MARK * section.is_stale(layout)
 
 
-def fill(root: Path, text: str) -> str:
-    return PLACEHOLDER.sub(lambda match: placeholder(root, match[1]), text)
+def fill(layout: Layout, text: str) -> str:
+    return PLACEHOLDER.sub(lambda match: placeholder(layout, match[1]), text)
 
 
-def summary_block(root: Path, rows: list[dict]) -> str:
+def summary_block(layout: Layout, rows: list[dict]) -> str:
     header = list(rows[0])
-    table = markdown_table(header, [[fill(root, row[key]) for key in header] for row in rows]) + "\n"
+    table = markdown_table(header, [[fill(layout, row[key]) for key in header] for row in rows]) + "\n"
     if STALE_MARK in table:
         table += f"\n{STALE_MARK} from a section whose code has changed since it was measured (marked stale there).\n"
     return table
 
 
-def generate(root: Path, path: str) -> str:
+def generate(layout: Layout, path: str) -> str:
     """The document at ``path`` with every generated block filled from the data."""
-    summary = tomllib.loads((root / RESULTS / "summary.toml").read_text())
-    text = (root / path).read_text()
+    summary = layout.summary()
+    text = (layout.root / path).read_text()
 
     def body(match: re.Match) -> str:
         name = match["name"]
         if isinstance(summary.get(name), str):  # a paragraph
-            content = fill(root, summary[name].strip()) + "\n"
+            content = fill(layout, summary[name].strip()) + "\n"
         elif name in summary:
-            content = summary_block(root, summary[name])
+            content = summary_block(layout, summary[name])
         else:
-            content = Section.load(root, name).block(root)
+            content = Section.load(layout, name).block(layout)
         return match[1] + "\n" + content + "\n" + match[4]
 
     return BLOCK.sub(body, text)
 
 
-def differences(root: Path) -> str:
+def differences(layout: Layout) -> str:
     """A unified diff of every document against its regenerated self ('' when all agree)."""
     diff: list[str] = []
-    for path in DOCUMENTS:
-        old, new = (root / path).read_text(), generate(root, path)
+    for path in layout.documents:
+        old, new = (layout.root / path).read_text(), generate(layout, path)
         diff += difflib.unified_diff(old.splitlines(True), new.splitlines(True), path, f"{path} (regenerated)")
     return "".join(diff)
 
 
-def write(root: Path, plots: bool = False) -> list[Path]:
+def write(layout: Layout, plots: bool = False) -> list[Path]:
     """Regenerate every document (and with ``plots`` every section's curves); returns what changed."""
     written = []
-    for path in DOCUMENTS:
-        new = generate(root, path)
-        if new != (root / path).read_text():
-            (root / path).write_text(new)
-            written.append(root / path)
+    for path in layout.documents:
+        new = generate(layout, path)
+        if new != (layout.root / path).read_text():
+            (layout.root / path).write_text(new)
+            written.append(layout.root / path)
     if plots:
-        for folder in sorted((root / RESULTS).glob("*/section.toml")):
-            section = Section.load(root, folder.parent.name)
+        for folder in sorted(layout.folder.glob("*/section.toml")):
+            section = Section.load(layout, folder.parent.name)
             if section.meta.get("plot"):
                 written += section.plot()
     return written
 
 
-def stamp(root: Path, name: str, commit: str) -> None:
+def stamp(layout: Layout, name: str, commit: str) -> None:
     """Record that section ``name``'s data was just measured with the code at ``commit``."""
-    section = Section.load(root, name)
+    section = Section.load(layout, name)
     path = section.folder / "section.toml"
     text = path.read_text()
-    for key, value in (("commit", commit), ("fingerprint", section.fingerprint(root))):
+    for key, value in (("commit", commit), ("fingerprint", section.fingerprint(layout))):
         text, count = re.subn(rf'(?m)^{key} = ".*"$', f'{key} = "{value}"', text)
         if count != 1:
-            raise DvaUsageError(f"{path.relative_to(root)} needs one line '{key} = \"…\"'")
+            raise DvaUsageError(f"{path.relative_to(layout.root)} needs one line '{key} = \"…\"'")
     path.write_text(text)

@@ -32,12 +32,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from flax import struct
 from jax.experimental import io_callback
 
 from dva.envs.observations import Observation, check_stacking
-from dva.envs.registry import DMC_PREFIX, dmc_domain_task
 from dva.envs.rendering import push_frame, reset_frame_stack
 from dva.errors import DvaUsageError
 from dva.tasks.base import EnvState
@@ -48,14 +48,25 @@ CAMERAS = {"quadruped": 2}  # the camera each domain is seen from (DrQ-v2's choi
 # shadow texels per frame pixel (at least 512) cartpole's 48² and 84² frames come out the same
 # but for a few shadow-edge pixels (≈ 0.005 %), and a 16-env step at 48² takes 0.35 s, not 0.65.
 SHADOW_TEXELS_PER_PIXEL, MIN_SHADOW_SIZE = 8, 512
+DMC_PREFIX = "dmc:"  # dm_control's tasks are named dmc:<domain>-<task>, e.g. dmc:ball_in_cup-catch
+
+
+def is_dmc(name: str) -> bool:
+    """Whether ``name`` names a dm_control task."""
+    return name.startswith(DMC_PREFIX)
+
+
+def dmc_domain_task(name: str) -> tuple[str, str]:
+    """dm_control's (domain, task) of ``dmc:<domain>-<task>`` (its task names use ``_``)."""
+    domain, _, task = name.removeprefix(DMC_PREFIX).partition("-")
+    return domain, task.replace("-", "_")
 
 
 @functools.cache
 def dm_control_suite() -> Any:
     """dm_control's suite, imported on first use with the EGL renderer unless ``MUJOCO_GL`` is set."""
     os.environ.setdefault("MUJOCO_GL", "egl")  # read when dm_control is imported
-    try:
-        import mujoco
+    try:  # the 'dmc' extra, imported only for a dmc: task
         from dm_control.mujoco.wrapper.mjbindings import sizes
     except ImportError:
         raise ImportError("dm_control tasks need the 'dmc' extra: pip install 'dva[dmc]'") from None
@@ -63,7 +74,7 @@ def dm_control_suite() -> Any:
         table = sizes.array_sizes[struct_name]
         for field in [field for field in table if not hasattr(mujoco_type, field)]:
             del table[field]
-    from dm_control import suite
+    from dm_control import suite  # after the table is patched: importing the suite reads it
 
     return suite
 
@@ -199,10 +210,8 @@ class HostData(struct.PyTreeNode):
 
 class DMCEnv:
     """``num_envs`` dm_control environments observed as :class:`PixelObservations` observes a
-    task: the state vector, and (with ``image_size``) a stack of ``frame_stack`` frames."""
-
-    renderer = None  # frames come from dm_control's own renderer
-    differentiable_pixels = False
+    task: the state vector, and (with ``image_size``) a stack of ``frame_stack`` frames, drawn by
+    dm_control's own renderer. An :class:`~dva.envs.observations.Env`, not a differentiable one."""
 
     def __init__(
         self, task: DMCTask, num_envs: int, image_size: int | None, frame_stack: int = 3, action_repeat: int = 2

@@ -37,11 +37,11 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from dva.envs.registry import TASK_CLASSES
 from dva.errors import DvaUsageError
+from dva.tasks import task_names
 
 if TYPE_CHECKING:  # the tasks load MuJoCo: imported when an env is made, not with dva
-    from dva.tasks import EnvState
+    from dva.tasks.base import EnvState
 
 ObsType = Literal["state", "pixels", "both"]
 OBS_TYPES: tuple[str, ...] = ("state", "pixels", "both")
@@ -65,8 +65,9 @@ def env_id(task: str) -> str:
 
 
 def register_envs() -> None:
-    """Register ``dva/<task>-v0`` for every task (again-safe)."""
-    for task in TASK_CLASSES:
+    """Register ``dva/<task>-v0`` for every task, those added with :func:`dva.register_task` too
+    (again-safe)."""
+    for task in task_names():
         if env_id(task) not in gymnasium.registry:
             gymnasium.register(
                 id=env_id(task),
@@ -103,15 +104,20 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
             raise DvaUsageError(f"array_type {array_type!r} is not allowed; use one of {', '.join(ARRAY_TYPES)}")
         if render_mode not in (None, "rgb_array"):
             raise DvaUsageError(f"render_mode {render_mode!r} is not allowed; use None or 'rgb_array'")
-        from dva.envs.observations import PixelObservations
-        from dva.envs.rendering import PixelRenderer
-        from dva.tasks import make_task
+        # MuJoCo and MJX load with the first environment made, not with `import dva`.
+        from dva.envs.factory import make_env
+        from dva.envs.observations import DifferentiableEnv
 
-        self.task = make_task(task, physics)
-        renderer = None
-        if obs_type != "state":
-            renderer = PixelRenderer(self.task, num_envs, image_size)
-        self.env = PixelObservations(self.task, num_envs, renderer, frame_stack)
+        env = make_env(
+            task,
+            num_envs,
+            renderer=None if obs_type == "state" else "warp",
+            image_size=image_size,
+            frame_stack=frame_stack,
+            physics=physics,
+        )
+        assert isinstance(env, DifferentiableEnv)  # a dva/<task>-v0 id names one of this project's tasks
+        self.env, self.task = env, env.task
         self.num_envs, self.obs_type, self.array_type = num_envs, obs_type, array_type
         self.render_mode, self.render_size = render_mode, render_size
         self._render_views: Callable[[jax.Array], jax.Array] | None = None  # made on the first render()
@@ -143,7 +149,7 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         already holds the new episode, which this step returns with reward 0 and no flags).
         Returns the state, the observation to return (with ``return_reached``, the one an ending
         step reached) and the one each step reached."""
-        from dva.envs.rendering import push_frame
+        from dva.envs.rendering import push_frame  # loads MuJoCo: here, once an env exists
 
         stepped = self.env.step(env, action)
         reached_pixels = stepped.frames
@@ -218,7 +224,7 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
         if self.render_mode is None or self._state is None:
             return None
         if self._render_views is None:
-            from dva.envs.rendering import PixelRenderer
+            from dva.envs.rendering import PixelRenderer  # MuJoCo and Warp: once an env renders
 
             self._render_views = jax.jit(PixelRenderer(self.task, self.num_envs, self.render_size).__call__)
         return tuple(np.asarray(self._render_views(self._state.data.qpos)))

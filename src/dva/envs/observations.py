@@ -1,4 +1,5 @@
-"""How an algorithm observes a task: the pixel-observation wrapper and the renderer protocol.
+"""How an algorithm observes a task: the environment and renderer protocols, and the pixel-observation
+wrapper that makes this project's tasks an environment.
 
 Algorithms never call a renderer themselves. They step a :class:`PixelObservations` wrapper, which
 renders after every reset and step, keeps a stack of the last ``frame_stack`` frames in
@@ -10,14 +11,14 @@ with the :class:`Renderer` interface works: MuJoCo's Warp ray-tracer
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
 
 from dva.envs.rendering import push_frame, reset_frame_stack
 from dva.errors import DvaUsageError
-from dva.tasks import EnvState, Task
+from dva.tasks.base import EnvState, Task
 
 
 class Renderer(Protocol):
@@ -30,6 +31,58 @@ class Renderer(Protocol):
 
 
 Observation = dict[str, jax.Array]  # {"state": (N, obs_dim), "pixels": (N, H, W, 3·k) or (N, 0)}
+
+
+class TaskInfo(Protocol):
+    """What an agent may read of any environment's task: its name, sizes and contact model."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def obs_dim(self) -> int: ...
+    @property
+    def action_dim(self) -> int: ...
+    @property
+    def episode_length(self) -> int: ...
+    @property
+    def physics(self) -> str: ...
+
+
+class Env(Protocol):
+    """A batch of ``num_envs`` environments behind pure, jittable ``reset`` and ``step`` over an
+    :class:`~dva.tasks.base.EnvState` (its ``frames`` the stack of the last ``frame_stack`` frames,
+    each action held ``action_repeat`` control steps). What every agent trains in: this project's
+    tasks (:class:`PixelObservations`) and dm_control's (:class:`~dva.envs.dmc.DMCEnv`) alike.
+    :mod:`dva.envs.factory` makes one from a task name."""
+
+    num_envs: int
+    frame_stack: int
+    action_repeat: int
+
+    @property
+    def task(self) -> TaskInfo: ...
+    @property
+    def episode_steps(self) -> int: ...
+    @property
+    def has_pixels(self) -> bool: ...
+    def reset(self, key: jax.Array) -> EnvState: ...
+    def step(self, env: EnvState, action: jax.Array) -> EnvState: ...
+    def observe(self, env: EnvState) -> Observation: ...
+    def evaluation_env(self) -> Env: ...
+
+
+@runtime_checkable
+class DifferentiableEnv(Env, Protocol):
+    """An :class:`Env` whose ``step`` JAX can differentiate (this project's tasks on MJX), with
+    the task itself (its model, for rendering and kinematics) and the renderer, if any: what the
+    short-horizon actor-critic family needs. dm_control's environments are not one."""
+
+    @property
+    def task(self) -> Task: ...
+    @property
+    def renderer(self) -> Renderer | None: ...
+    @property
+    def differentiable_pixels(self) -> bool: ...
 
 
 def check_stacking(frame_stack: int, action_repeat: int) -> None:

@@ -9,13 +9,21 @@ renders. Rendering is not differentiable, so its input passes through ``jax.lax.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import logging
+import os
+import sys
+import tempfile
+import types
+
 import jax
 import jax.numpy as jnp
 import mujoco
 from mujoco import mjx
 
 from dva.errors import DvaUsageError
-from dva.tasks import Task
+from dva.tasks.base import Task
 
 DEFAULT_IMAGE_SIZE = 84
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 1024
@@ -32,15 +40,53 @@ def check_image_size(width: int, height: int) -> None:
             )
 
 
-def require_warp() -> None:
-    """A one-line error naming the extra when the Warp renderer's packages are missing."""
-    try:
+LOG = logging.getLogger("dva")
+# What Warp's native start-up prints on a machine without a GPU: nothing wrong, so only at DEBUG.
+CUDA_ABSENT = "Could not find or load the NVIDIA CUDA driver"
+
+
+@functools.cache
+def load_warp() -> types.ModuleType:
+    """Warp (the ``pixels`` extra, a one-line error naming it when missing), initialised once and
+    quietly: its start-up banner, its per-kernel "Module … load" lines and the notice a machine
+    without a GPU prints go to the ``dva`` logger at DEBUG
+    (``logging.getLogger("dva").setLevel(logging.DEBUG)`` shows them); anything else it prints
+    while starting, and its warnings after, still reach stderr."""
+    try:  # the 'pixels' extra, imported only when a Warp renderer is made
         import mujoco_warp  # noqa: F401
-        import warp  # noqa: F401
+        import warp
     except ImportError as error:
         raise ImportError(
             f"the Warp pixel renderer needs the 'pixels' extra: pip install 'dva[pixels]' ({error})"
         ) from None
+    if not LOG.isEnabledFor(logging.DEBUG):
+        warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
+    with captured_stderr() as printed:
+        warp.init()
+    for line in printed():
+        if CUDA_ABSENT in line:
+            LOG.debug("Warp: %s", line.strip())
+        else:
+            sys.stderr.write(line)
+    return warp
+
+
+@contextlib.contextmanager
+def captured_stderr():
+    """Everything written to file descriptor 2 inside the block (native code's ``fprintf`` too),
+    held back; yields a function that returns its lines once the block has ended."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as held:
+        os.dup2(held.fileno(), 2)
+        lines: list[str] = []
+        try:
+            yield lambda: lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            lines.extend(held.read().decode(errors="replace").splitlines(keepends=True))
 
 
 def scene_poses(task: Task, qpos: jax.Array) -> mjx.Data:
@@ -82,10 +128,8 @@ class PixelRenderer:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise DvaUsageError(f"num_envs must be a positive int, got {num_envs!r}")
         self.task, self.num_envs, self.width, self.height, self.depth = task, num_envs, width, height, depth
-        require_warp()
+        warp = load_warp()
         if device is not None:  # build the model, template and render context on that device
-            import warp
-
             warp_device = f"cuda:{device.local_hardware_id}" if device.platform == "gpu" else "cpu"
             with jax.default_device(device), warp.ScopedDevice(warp_device):
                 self._build(task, num_envs, width, height, depth, samples_per_pixel)

@@ -24,7 +24,7 @@ import numpy as np
 
 from dva.envs.rendering import MAX_DEPTH, SKY_COLOR, check_image_size, scene_poses
 from dva.errors import DvaUsageError
-from dva.tasks import Task
+from dva.tasks.base import Task
 
 CAPSULE, SPHERE, BOX, PLANE = (
     int(mujoco.mjtGeom.mjGEOM_CAPSULE),

@@ -12,7 +12,7 @@ import numpy as np
 
 from dva.envs.rendering import PixelRenderer
 from dva.errors import DvaUsageError
-from dva.tasks import CONTROL_DT, EnvState, Task
+from dva.tasks.base import CONTROL_DT, EnvState, Task
 
 
 def image_grid(images: np.ndarray, columns: int | None = None, pad: int = 2) -> np.ndarray:

@@ -10,15 +10,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from dva.envs.observations import Observation, PixelObservations
-from dva.tasks import Task
+from dva.algorithms.base import Agent, RecurrentAgent
+from dva.envs.observations import Env, Observation, PixelObservations
+from dva.tasks.base import Task
 
 # (observation, memory, key) → (action in [−1, 1], memory): the memory is what a recurrent policy
 # carries between steps (DreamerV3's latent state), ``()`` for the others.
 Policy = Callable[[Observation, Any, jax.Array], tuple[jax.Array, Any]]
 
 
-def evaluate_policy(env: PixelObservations, policy: Policy, key: jax.Array, record: bool = False, memory: Any = ()):
+def evaluate_policy(env: Env, policy: Policy, key: jax.Array, record: bool = False, memory: Any = ()):
     """Undiscounted return of one full episode per env under ``policy``, starting from ``memory``: (N,).
 
     Episodes that end early stop counting (the auto-reset continues them unseen). With
@@ -51,3 +52,19 @@ def random_policy_returns(task: Task, key: jax.Array, num_envs: int) -> jax.Arra
         return jax.random.uniform(step_key, (num_envs, task.action_dim), minval=-1.0, maxval=1.0), memory
 
     return evaluate_policy(PixelObservations(task, num_envs), uniform, key)
+
+
+def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
+    """:func:`~dva.runner.evaluation.evaluate_policy` with the agent's deterministic policy (its memory
+    carried from step to step where it is a :class:`~dva.algorithms.base.RecurrentAgent`)."""
+    if isinstance(agent, RecurrentAgent):
+        return evaluate_policy(
+            agent.env,
+            lambda observation, memory, key: agent.act_recurrent(policy, observation, memory, key),
+            key,
+            record,
+            agent.initial_memory(agent.env.num_envs),
+        )
+    return evaluate_policy(
+        agent.env, lambda observation, memory, _key: (agent.act(policy, observation), memory), key, record
+    )

@@ -1,5 +1,5 @@
 """Process-wide set-up, done by :func:`configure` and never on import: XLA's CPU convolutions,
-persistent compile caches and quiet Warp.
+persistent compile caches.
 
 Call ``dva.configure()`` at the start of a script, before JAX computes anything: JAX reads
 ``XLA_FLAGS`` once, when it starts its CPU client, and Warp reads ``WARP_CACHE_PATH`` when it is
@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+
+import jax
 
 
 def cache_root() -> Path:
@@ -42,21 +44,15 @@ def configure_caches() -> None:
     """
     root = cache_root()
     os.environ.setdefault("WARP_CACHE_PATH", str(root / "warp"))
-    import jax
 
     jax.config.update("jax_compilation_cache_dir", str(root / "jax"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    try:
-        import warp
-    except ImportError:  # only the Warp pixel renderer needs it; physics and state-based training do not
-        return
-    warp.config.log_level = warp.LOG_WARNING  # no start-up banner, no per-kernel "Module … load" lines
 
 
 def configure() -> None:
     """Everything a fast run needs, for scripts that use dva: :func:`configure_xla` (the pixel
-    encoder's CPU convolutions) and :func:`configure_caches` (compile caches, quiet Warp).
+    encoder's CPU convolutions) and :func:`configure_caches` (compile caches).
     Call it first; calling it again changes nothing."""
     configure_xla()
     configure_caches()

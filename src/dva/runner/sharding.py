@@ -17,9 +17,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from dva.envs.factory import DATA_AXIS
 from dva.errors import DvaUsageError
-
-DATA_AXIS = "data"
 
 
 def device_mesh(devices: int | None, num_envs: int) -> Mesh:
@@ -48,22 +47,3 @@ def state_shardings(state, mesh: Mesh, batch_fields: tuple[str, ...]):
 def place(state, mesh: Mesh, batch_fields: tuple[str, ...]):
     """``state`` on ``mesh``: its batch fields split, the rest replicated."""
     return jax.device_put(state, state_shardings(state, mesh, batch_fields))
-
-
-class SplitRenderer:
-    """A renderer for ``num_envs`` envs split over ``mesh``: one renderer per device for its share
-    (``make(share, device)``), each device running its own. (A renderer that is a foreign call,
-    as Warp's, cannot be partitioned by XLA, and one render context serves one device.)"""
-
-    def __init__(self, make, num_envs: int, mesh: Mesh) -> None:
-        share = num_envs // mesh.size
-        self.parts = [make(share, device) for device in mesh.devices.flat]
-        self.num_envs, self.mesh = num_envs, mesh
-        self.differentiable = self.parts[0].differentiable
-
-    def __call__(self, qpos: jax.Array) -> jax.Array:
-        def local(qpos):
-            return jax.lax.switch(jax.lax.axis_index(DATA_AXIS), [part.__call__ for part in self.parts], qpos)
-
-        split = PartitionSpec(DATA_AXIS)
-        return jax.shard_map(local, mesh=self.mesh, in_specs=split, out_specs=split)(qpos)
