@@ -90,6 +90,10 @@ BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run
     (["train", "--iterations", "1", "--run-dir", "FILE"], "is a file, not a directory"),
     (["train", "--iterations", "1", "--run-dir", "FILE/run"], "cannot be written (Not a directory)"),
     (["train", "--resume", "--run-dir", "RUN"], "--resume: no run to resume in"),
+    (  # without --task a resume is the run's own task; with it, it must be the run's
+        ["train", "--task", "cartpole_swingup", "--resume", "--run-dir", "SHAC_RUN", "--algo", "shac"],
+        "holds a shac run on hopper, not shac on cartpole_swingup; pass --task hopper --algo shac",
+    ),
     (
         ["train", "--task", "cartpole_swingup", "--algo", "dva", "--resume", "--run-dir", "SHAC_RUN"],
         "holds a shac run on hopper, not dva on cartpole_swingup; pass --task hopper --algo shac",

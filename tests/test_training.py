@@ -51,7 +51,8 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert [int(r["iteration"]) for r in resumed] == [0, 1, 2, 3, 4, 5]
     assert resumed[4]["eval_return"] == "" and resumed[5]["eval_return"] != ""  # runs end on an evaluation
     # By the clock instead: an hour between evaluations gives only the last; none, every iteration.
-    train("cartpole_swingup", iterations=2, run_dir=run_dir, resume=True, eval_every=None, eval_minutes=60.0)
+    # No task or algorithm given: the run's own (`dva train --resume --run-dir RUN`).
+    train(None, iterations=2, run_dir=run_dir, resume=True, eval_every=None, eval_minutes=60.0)
     train("cartpole_swingup", iterations=2, run_dir=run_dir, resume=True, eval_every=None, eval_minutes=1e-9)
     assert [r["eval_return"] != "" for r in rows(run_dir)[6:]] == [False, True, True, True]
     times = [float(r["wall_time"]) for r in resumed]

@@ -137,7 +137,8 @@ class TrainOptions:
     SHAC (pixels from the differentiable renderer, full gradient), or a baseline (DrQ-v2, CURL,
     state-to-visual DAgger, DreamerV3 or TD-MPC2 from pixels or the state)."""
 
-    task: str = "cartpole_swingup"
+    task: str | None = None
+    """The task (`dva tasks` lists them); default cartpole_swingup, on --resume the run's own."""
     algo: AlgoName | None = None
     """The algorithm (the docs' Algorithms page describes each); default dva, on --resume the run's own."""
     preset: PresetName = "cpu"
@@ -172,6 +173,10 @@ class TrainOptions:
     wandb_project: str | None = None
     """The W&B project (default: $WANDB_PROJECT, else dva)."""
 
+    def resolved_task(self) -> str | None:
+        """--task, else cartpole_swingup for a new run; None on --resume (the run's own)."""
+        return self.task or (None if self.resume else "cartpole_swingup")
+
     def resolved_algo(self) -> str | None:
         """--algo, else dva for a new run; None on --resume (the run's own, from its run.json)."""
         return self.algo or (None if self.resume else "dva")
@@ -195,13 +200,14 @@ class TrainOptions:
         if self.run_dir is None:
             if self.resume:
                 raise DvaUsageError("--resume needs --run-dir: the run to continue")
-            name = f"{self.task.replace(':', '_')}_{self.resolved_algo()}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+            task = (self.task or "cartpole_swingup").replace(":", "_")
+            name = f"{task}_{self.resolved_algo()}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
             self.run_dir = Path("runs") / name
         tracker = None
         if self.track:
             tracker = WandbTracker(self.wandb_project)
         run_dir = train(
-            self.task,
+            self.resolved_task(),
             self.algo,
             preset=self.preset,
             seed=self.seed,

@@ -70,16 +70,17 @@ def check_new_run_dir(run_dir: Path) -> None:
     check_run_dir(run_dir)
 
 
-def resumed_run(run_dir: Path, task: str, algo: str | None) -> RunSpec:
-    """The spec of the run in ``run_dir`` (``run.json``), which must be a run on ``task`` (and of
-    ``algo`` where given)."""
+def resumed_run(run_dir: Path, task: str | None, algo: str | None) -> RunSpec:
+    """The spec of the run in ``run_dir`` (``run.json``), which must be a run on ``task`` and of
+    ``algo`` where they are given."""
     spec_path = run_dir / "run.json"
     if not spec_path.exists():
         raise DvaUsageError(f"--resume: no run to resume in {run_dir} (missing run.json)")
     spec = RunSpec.read(spec_path)
-    if spec.task != task or algo not in (None, spec.algo):
+    if task not in (None, spec.task) or algo not in (None, spec.algo):
         raise DvaUsageError(
-            f"--resume: {run_dir} holds a {spec.algo} run on {spec.task}, not {algo or spec.algo} on {task}; "
+            f"--resume: {run_dir} holds a {spec.algo} run on {spec.task}, "
+            f"not {algo or spec.algo} on {task or spec.task}; "
             f"pass --task {spec.task} --algo {spec.algo}"
         )
     return spec

@@ -58,7 +58,7 @@ def run_mesh(spec: RunSpec, devices: int | None) -> Mesh | None:
 
 
 def train(
-    task: str,
+    task: str | None,
     algo: str | None = None,
     *,
     preset: str = "cpu",
@@ -78,10 +78,11 @@ def train(
 ) -> Path:
     """Train ``algo`` on ``task`` and return the run directory (logs, checkpoints, ``run.json``).
 
-    ``algo`` defaults to ``"dva"`` for a new run and to the run's own on ``resume`` (given, it
-    must be the run's). ``config_overrides`` replace fields of the preset's config (None: keep). Stops after
-    ``iterations``, or ``minutes`` (the whole call, set-up and compilation included, and what the
-    agent builds on — DAgger's teacher —, evaluations excluded; so does the logged wall-clock, a
+    ``algo`` defaults to ``"dva"`` for a new run; on ``resume``, ``task`` and ``algo`` default to
+    the run's own (given, they must be the run's). ``config_overrides`` replace fields of the
+    preset's config (None: keep). Stops after ``iterations``, or ``minutes`` (the whole call,
+    set-up and compilation included, and what the agent builds on — DAgger's teacher —,
+    evaluations excluded; so does the logged wall-clock, a
     fair clock for comparing methods whatever their tasks' evaluations cost; on ``resume``,
     minutes more, counted from the first iteration: a resume's set-up and compilation are off the
     clock), or else the agent's ``default_iterations``. Evaluates at iteration 0, every
@@ -99,6 +100,8 @@ def train(
     check_budget(iterations, minutes)
     if resume:
         spec = resumed_run(run_dir, task, algo)
+    elif task is None:
+        raise DvaUsageError("a new run needs a task (dva tasks lists them)")
     else:
         algo = algo or "dva"
         check_new_run_dir(run_dir)
