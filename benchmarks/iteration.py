@@ -3,25 +3,30 @@ critic / rendering), plus the pixel encoder's analytic compute bound.
 
     python benchmarks/iteration.py [--task cartpole_swingup] [--algo dva] [--preset cpu]
                                    [--num-envs N] [--image-size S] [--chunk C]
-                                   [--csv FILE --label LABEL]
+                                   [--pytorch PYTHON] [--csv FILE --label LABEL]
 
 Prints a markdown table; ``--csv`` also appends the parts' seconds as one row of FILE (several
 tasks, algorithms or code versions measured into one table). The encoder bound is its arithmetic
-(forward + backward over all h × N frames) divided by the float32 matmul rate this machine
-reaches. For pixel actors it also times the reference measurement — the encoder + trunk's forward
-and parameter gradient over 512 images of 84² × 9 — next to PyTorch's 1.55 s on a comparable
-2-core CPU, and states the actor backward's rate per FLOP against PyTorch's on that measurement.
+(forward + backward over all h × N frames) divided by the float32 matmul rate this process
+reaches on the cores it may use (``taskset`` decides: pin it to one core for a one-core bound).
+For pixel actors it also times the reference measurement — the encoder + trunk's forward and
+parameter gradient over 512 images of 84² × 9 — and, given ``--pytorch`` (an interpreter with
+PyTorch), the same work in PyTorch on the same cores (``benchmarks/pytorch_encoder.py``), for the
+reference and for this iteration's images.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import os
+import re
+import subprocess
 from pathlib import Path
 
-# The reference measurement: the DrQ-v2 encoder + 64-wide trunk, forward + backward w.r.t. its parameters, on
-# (images, size, channels) uint8 pixels, PyTorch 2.13 on a comparable 2-core CPU: seconds.
-PYTORCH_ENCODER_GRADIENT = {"images": 512, "image_size": 84, "channels_in": 9, "seconds": 1.55}
+# The reference measurement: the DrQ-v2 encoder + 64-wide trunk, forward + backward w.r.t. its
+# parameters, on (images, size, channels) uint8 pixels.
+REFERENCE = {"images": 512, "image_size": 84, "channels_in": 9}
 
 
 def encoder_gradient_seconds(images: int, image_size: int, channels_in: int, trunk: int = 64) -> float:
@@ -45,6 +50,18 @@ def encoder_gradient_seconds(images: int, image_size: int, channels_in: int, tru
     return timed(jax.jit(jax.grad(loss)), (encoder, projection), pixels)[1]
 
 
+def pytorch_gradient_seconds(python: str, images: int, image_size: int, channels_in: int) -> float:
+    """:func:`encoder_gradient_seconds`'s work in PyTorch (``benchmarks/pytorch_encoder.py`` run by
+    the interpreter ``python``), on as many threads as this process has cores."""
+    script = Path(__file__).with_name("pytorch_encoder.py")
+    arguments = ["--images", images, "--image-size", image_size, "--channels", channels_in]
+    arguments += ["--threads", len(os.sched_getaffinity(0))]
+    printed = subprocess.run(
+        [python, str(script), *map(str, arguments)], check=True, capture_output=True, text=True
+    ).stdout
+    return float(re.search(r": ([0-9.]+) s \(best of 5\)", printed).group(1))
+
+
 def append_row(path: Path, row: dict) -> None:
     """``row`` appended to the CSV file ``path`` (its header written when the file is new)."""
     new = not path.exists()
@@ -63,13 +80,13 @@ def main() -> None:
     parser.add_argument("--num-envs", type=int)
     parser.add_argument("--image-size", type=int)
     parser.add_argument("--chunk", type=int, default=1, help="D.Va's actor_backward_chunk (0: the kept passes)")
+    parser.add_argument("--pytorch", help="an interpreter with PyTorch: also time the encoder's gradient there")
     parser.add_argument("--csv", type=Path, help="append this measurement as one row to this CSV file")
     parser.add_argument("--label", default="", help="the row's label in --csv (e.g. the code version)")
     args = parser.parse_args()
 
     from dva.analysis.bench import machine_description, markdown_table
     from dva.analysis.breakdown import measure_iteration
-    from dva.analysis.profile import encoder_flops, matmul_flops_per_s
 
     config, times = measure_iteration(
         args.task,
@@ -90,6 +107,15 @@ def main() -> None:
         if part != "render_with_actor"
     ]
     print(markdown_table(["part", "seconds", "share of iteration"], rows))
+    if "render_with_actor" in times:
+        apart = times["render"] + times["actor_forward"]
+        print(
+            f"\nrendering and the actor forward side by side in one loop (no dependence): "
+            f"{times['render_with_actor']:.3f} s vs {apart:.3f} s one after the other "
+            f"({1 - times['render_with_actor'] / apart:+.0%}): the most that rendering the next frame "
+            f"while the actor runs could save per iteration"
+        )
+    encoder = encoder_report(config, times, args.pytorch) if config.observation == "pixels" else {}
     if args.csv:
         append_row(
             args.csv,
@@ -99,44 +125,57 @@ def main() -> None:
                 algo=args.algo,
                 num_envs=config.num_envs,
                 horizon=config.horizon,
+                image_size=config.image_size if config.observation == "pixels" else "",
                 **{f"{part}_s": seconds for part, seconds in times.items() if part != "render_with_actor"},
                 rollout_backward_share=times["rollout_backward"] / times["iteration"],
+                **encoder,
+                cores=len(os.sched_getaffinity(0)),
                 device=machine_description(),
             ),
         )
-    if "render_with_actor" in times:
-        apart = times["render"] + times["actor_forward"]
-        print(
-            f"\nrendering and the actor forward side by side in one loop (no dependence): "
-            f"{times['render_with_actor']:.3f} s vs {apart:.3f} s one after the other "
-            f"({1 - times['render_with_actor'] / apart:+.0%}): the most that rendering the next frame "
-            f"while the actor runs could save per iteration"
-        )
-    if config.observation == "pixels":
-        images = config.num_envs * config.horizon
-        flops = encoder_flops(config.image_size, 3 * config.frame_stack, trunk=config.trunk)
-        rate = matmul_flops_per_s()
-        # Chunks recompute the encoder's forward; the kept backward passes (chunk 0) do not.
-        recomputed = config.actor_backward_chunk > 0
-        bound = images * (flops["forward"] * recomputed + flops["backward"]) / rate
-        print(
-            f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
-            f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s → bound {bound:.3f} s for {images} images "
-            f"({'forward + backward: chunks of ' + str(config.actor_backward_chunk) if recomputed else 'backward: kept passes'}); "  # noqa: E501
-            f"measured actor backward {times['actor_backward']:.3f} s = {times['actor_backward'] / bound:.1f}× the bound"  # noqa: E501
-        )
-        reference = PYTORCH_ENCODER_GRADIENT
-        ours = encoder_gradient_seconds(reference["images"], reference["image_size"], reference["channels_in"])
-        reference_flops = encoder_flops(reference["image_size"], reference["channels_in"])
-        reference_rate = reference["images"] * sum(reference_flops.values()) / reference["seconds"]
-        actor_rate = bound * rate / times["actor_backward"]
-        print(
-            f"reference measurement (encoder + trunk, forward + parameter gradient, {reference['images']} × "
-            f"{reference['image_size']}² × {reference['channels_in']}): {ours:.3f} s here vs PyTorch's "
-            f"{reference['seconds']} s = {ours / reference['seconds']:.2f}×; actor backward "
-            f"{actor_rate / 1e9:.0f} GFLOP/s vs PyTorch's {reference_rate / 1e9:.0f} on that measurement "
-            f"= {reference_rate / actor_rate:.2f}× its time per FLOP"
-        )
+
+
+def encoder_report(config, times: dict[str, float], pytorch: str | None) -> dict[str, float | str]:
+    """Prints the actor backward against the encoder's matmul bound, and the reference measurement
+    (with PyTorch's where ``pytorch`` names an interpreter); returns those numbers."""
+    from dva.analysis.profile import encoder_flops, matmul_flops_per_s
+
+    images = config.num_envs * config.horizon
+    channels = 3 * config.frame_stack
+    flops = encoder_flops(config.image_size, channels, trunk=config.trunk)
+    rate = max(matmul_flops_per_s() for _ in range(5))
+    # Chunks recompute the encoder's forward; the kept backward passes (chunk 0) do not.
+    recomputed = config.actor_backward_chunk > 0
+    bound = images * (flops["forward"] * recomputed + flops["backward"]) / rate
+    passes = f"forward + backward: chunks of {config.actor_backward_chunk}" if recomputed else "backward: kept passes"
+    cores = len(os.sched_getaffinity(0))
+    print(
+        f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
+        f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s on {cores} core(s) → bound {bound:.3f} s for "
+        f"{images} images ({passes}); measured actor backward {times['actor_backward']:.3f} s = "
+        f"{times['actor_backward'] / bound:.2f}× the bound; rendering {1e3 * times['render'] / images:.2f} ms per frame"
+    )
+    ours = encoder_gradient_seconds(**REFERENCE)
+    at_size = encoder_gradient_seconds(images, config.image_size, channels)
+    numbers: dict[str, float | str] = {
+        "matmul_gflops": rate / 1e9,
+        "bound_s": bound,
+        "bound_ratio": times["actor_backward"] / bound,
+        "render_ms_per_frame": 1e3 * times["render"] / images,
+        "reference_s": ours,
+        "encoder_gradient_s": at_size,
+        "pytorch_reference_s": "",
+        "pytorch_encoder_gradient_s": "",
+    }
+    shape = f"{REFERENCE['images']} × {REFERENCE['image_size']}² × {REFERENCE['channels_in']}"
+    line = f"encoder + trunk, forward + parameter gradient: {shape} {ours:.3f} s; {images} × {config.image_size}² × {channels} {at_size:.3f} s"  # noqa: E501
+    if pytorch:
+        theirs = pytorch_gradient_seconds(pytorch, **REFERENCE)
+        theirs_at_size = pytorch_gradient_seconds(pytorch, images, config.image_size, channels)
+        numbers.update(pytorch_reference_s=theirs, pytorch_encoder_gradient_s=theirs_at_size)
+        line += f" (PyTorch on the same cores: {theirs:.3f} s and {theirs_at_size:.3f} s)"
+    print(line)
+    return numbers
 
 
 if __name__ == "__main__":
