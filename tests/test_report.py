@@ -32,7 +32,8 @@ def make_root(tmp_path: Path, fingerprint: str = "") -> report.Layout:
         'command = "dva train --task toy"\nmachine = "a CPU"\ncommit = "0123abc"\n'
         f'sources = ["src/task.py"]\nconfigs = []\nfingerprint = "{fingerprint}"\n\n'
         '[runs]\n"D.Va" = ["s0.csv", "s1.csv"]\n\n'
-        '[[tables]]\ncolumns = ["untrained", "first 600", "final", "median10", "best", "env steps", "grad norm"]\n'
+        '[[tables]]\ncolumns = ["untrained", "first 600", "final", "median10", "best", "env steps", "grad norm", '
+        '"at 3 it"]\n'
     )
     (tmp_path / report.RESULTS / "summary.toml").write_text(
         '[[status]]\ntask = "toy"\n"D.Va" = "final {{toy|D.Va|final}}, 2× at {{toy|D.Va|minutes to 600}} min"\n'
@@ -52,7 +53,8 @@ def test_run_statistics_are_the_hand_computed_ones(tmp_path):
     # Seed 0 evaluates 100, 700, 500; seed 1 100, 900, 300. Final: mean 400, std 100; median of
     # the (three) last: 500 and 300; both first pass 600 at the 60-second evaluation (512 steps).
     assert "| D.Va | 100 / 100 | 1.0 min (1k steps) / 1.0 min (1k steps) | 400 ± 100 | 400 ± 100 | 700 / 900 |" in text
-    assert "| 1k / 1k | 9 / 9 |" in text
+    # At iteration 3 neither evaluated: the next evaluation, iteration 4's, counts.
+    assert "| 1k / 1k | 9 / 9 | 500 / 300 |" in text
     assert "| toy | final 400 ± 100†, 2× at 1.0 / 1.0† min |" in text  # a stale section's values are marked
     assert "old" not in text
 

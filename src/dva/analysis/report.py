@@ -82,9 +82,11 @@ STALE_MARK = "†"
 
 @dataclasses.dataclass
 class Run:
-    """One run's evaluations (wall-clock in seconds, env steps, return) and what else it logged."""
+    """One run's evaluations (iteration, wall-clock in seconds, env steps, return) and what else it
+    logged."""
 
     name: str
+    iteration: np.ndarray
     wall_time: np.ndarray
     env_steps: np.ndarray
     eval_return: np.ndarray
@@ -104,6 +106,7 @@ class Run:
 
         return cls(
             path.name,
+            np.array([int(float(r["iteration"])) for r in evals]),
             np.array([float(r["wall_time"]) for r in evals]),
             np.array([float(r["env_steps"]) for r in evals]),
             np.array([float(r["eval_return"]) for r in evals]),
@@ -118,7 +121,7 @@ class Run:
         return int(reached[0]) if len(reached) else None
 
     def at(self, axis: np.ndarray, value: float) -> float | None:
-        """The first evaluation at or after ``value`` on ``axis`` (wall-clock or env steps)."""
+        """The first evaluation at or after ``value`` on ``axis`` (iteration, wall-clock or env steps)."""
         index = np.flatnonzero(axis >= value)
         return float(self.eval_return[index[0]]) if len(index) else None
 
@@ -156,7 +159,8 @@ def first_column(threshold: float, with_steps: bool = True) -> Callable[[list[Ru
 
 
 def at_column(axis: str, value: float) -> Callable[[list[Run]], str]:
-    """Each seed's evaluation at ``value`` on ``axis`` ("wall_time" in seconds or "env_steps")."""
+    """Each seed's evaluation at ``value`` on ``axis`` ("iteration", "wall_time" in seconds or
+    "env_steps")."""
 
     def cell(runs: list[Run]) -> str:
         values = [run.at(getattr(run, axis), value) for run in runs]
@@ -202,7 +206,8 @@ FIXED_COLUMNS: dict[str, tuple[str, Callable[[list[Run]], str]]] = {
 
 def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
     """A column of a runs table from its name: one of :data:`FIXED_COLUMNS`, ``first T`` (when each
-    seed's evaluations first reached T), ``at M min`` or ``at N steps`` (the evaluation then)."""
+    seed's evaluations first reached T), ``at M min``, ``at Nk steps`` or ``at N it`` (the
+    evaluation then)."""
     if spec in FIXED_COLUMNS:
         return FIXED_COLUMNS[spec]
     if match := re.fullmatch(r"first (-?[\d.]+)", spec):
@@ -213,7 +218,9 @@ def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
         return f"eval at {match[1]} min", at_column("wall_time", 60 * float(match[1]))
     if match := re.fullmatch(r"at ([\d.]+)k steps", spec):
         return f"eval at {match[1]}k env steps", at_column("env_steps", 1e3 * float(match[1]))
-    allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps"])
+    if match := re.fullmatch(r"at (\d+) it", spec):
+        return f"eval at iteration {match[1]}", at_column("iteration", float(match[1]))
+    allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps", "at N it"])
     raise DvaUsageError(f"unknown results column {spec!r}; allowed: {allowed}")
 
 
