@@ -33,7 +33,7 @@ def make_root(tmp_path: Path, fingerprint: str = "") -> report.Layout:
         f'sources = ["src/task.py"]\nconfigs = []\nfingerprint = "{fingerprint}"\n\n'
         '[runs]\n"D.Va" = ["s0.csv", "s1.csv"]\n\n'
         '[[tables]]\ncolumns = ["untrained", "first 600", "final", "median10", "best", "env steps", "grad norm", '
-        '"at 3 it"]\n'
+        '"at 3 it", "median10 interval"]\n'
     )
     (tmp_path / report.RESULTS / "summary.toml").write_text(
         '[[status]]\ntask = "toy"\n"D.Va" = "final {{toy|D.Va|final}}, 2× at {{toy|D.Va|minutes to 600}} min"\n'
@@ -50,12 +50,14 @@ def make_root(tmp_path: Path, fingerprint: str = "") -> report.Layout:
 def test_run_statistics_are_the_hand_computed_ones(tmp_path):
     root = make_root(tmp_path)
     text = report.generate(root, "docs/results.md")
-    # Seed 0 evaluates 100, 700, 500; seed 1 100, 900, 300. Final: mean 400, std 100; median of
-    # the (three) last: 500 and 300; both first pass 600 at the 60-second evaluation (512 steps).
-    assert "| D.Va | 100 / 100 | 1.0 min (1k steps) / 1.0 min (1k steps) | 400 ± 100 | 400 ± 100 | 700 / 900 |" in text
-    # At iteration 3 neither evaluated: the next evaluation, iteration 4's, counts.
-    assert "| 1k / 1k | 9 / 9 | 500 / 300 |" in text
-    assert "| toy | final 400 ± 100†, 2× at 1.0 / 1.0† min |" in text  # a stale section's values are marked
+    # Seed 0 evaluates 100, 700, 500; seed 1 100, 900, 300. Final: mean 400, sample std
+    # 100·√2 = 141; median of the (three) last: 500 and 300; both first pass 600 at the 60-second
+    # evaluation (512 steps).
+    assert "| D.Va | 100 / 100 | 1.0 min (1k steps) / 1.0 min (1k steps) | 400 ± 141 | 400 ± 141 | 700 / 900 |" in text
+    # At iteration 3 neither evaluated: the next evaluation, iteration 4's, counts. Resampling the
+    # two medians gives means 300, 400, 500 with chances ¼, ½, ¼: the 95 % interval is [300, 500].
+    assert "| 1k / 1k | 9 / 9 | 500 / 300 | 400 [300, 500] |" in text
+    assert "| toy | final 400 ± 141†, 2× at 1.0 / 1.0† min |" in text  # a stale section's values are marked
     assert "old" not in text
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
+from dva.analysis.statistics import sample_std
 from dva.errors import DvaUsageError
 
 METRICS = ("eval_return", "train_return")
@@ -82,7 +83,7 @@ def summarize_runs(
     labels: dict[Path, str] | None = None,
 ) -> list[dict]:
     """One row per setting: seeds, final, late (each run's median over its last
-    :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± std over seeds), run length, and
+    :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± sample std over seeds), run length, and
     with a threshold how many seeds reached it and the median wall-clock and env steps they took
     (NaN when none did). ``threshold`` is one value for every setting or one per setting's label
     (a label it maps to None, or lacks, is not timed)."""
@@ -96,9 +97,9 @@ def summarize_runs(
             "setting": label,
             "seeds": len(curves),
             "final_mean": final.mean(),
-            "final_std": final.std(),
+            "final_std": sample_std(final),
             "late_mean": late.mean(),
-            "late_std": late.std(),
+            "late_std": sample_std(late),
             "best_mean": best.mean(),
             "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
             "env_steps": np.mean([c["env_steps"][-1] for c in curves]),

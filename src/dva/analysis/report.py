@@ -50,6 +50,7 @@ import numpy as np
 from dva.algorithms import make_config
 from dva.analysis.bench import markdown_table
 from dva.analysis.plots import LATE_POINTS, PublishedCurve, plot_curves
+from dva.analysis.statistics import bootstrap_interval, sample_std
 from dva.errors import DvaUsageError
 
 RESULTS = Path("docs/results")
@@ -137,8 +138,14 @@ def steps(value: float) -> str:
 
 
 def spread(values: list[float]) -> str:
-    """One seed's value, or the mean ± std over seeds."""
-    return whole(values[0]) if len(values) == 1 else f"{whole(float(np.mean(values)))} ± {np.std(values):.0f}"
+    """One seed's value, or the mean ± the sample std over seeds."""
+    return whole(values[0]) if len(values) == 1 else f"{whole(float(np.mean(values)))} ± {sample_std(values):.0f}"
+
+
+def interval(values: list[float]) -> str:
+    """The mean over seeds and its bootstrap 95 % interval, as "mean [low, high]"."""
+    low, high = bootstrap_interval(values)
+    return f"{whole(float(np.mean(values)))} [{whole(low)}, {whole(high)}]"
 
 
 def per_seed(values: list[str]) -> str:
@@ -187,6 +194,10 @@ FIXED_COLUMNS: dict[str, tuple[str, Callable[[list[Run]], str]]] = {
     "median10": (
         f"median of the last {LATE_POINTS}",
         lambda runs: spread([np.median(r.eval_return[-LATE_POINTS:]) for r in runs]),
+    ),
+    "median10 interval": (
+        f"mean of the medians of the last {LATE_POINTS} [95 % interval]",
+        lambda runs: interval([np.median(r.eval_return[-LATE_POINTS:]) for r in runs]),
     ),
     "best": ("best", lambda runs: per_seed([whole(r.eval_return.max()) for r in runs])),
     "env steps": ("env steps", lambda runs: per_seed([steps(r.env_steps[-1]) for r in runs])),
