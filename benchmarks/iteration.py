@@ -126,7 +126,7 @@ def main() -> None:
                 num_envs=config.num_envs,
                 horizon=config.horizon,
                 image_size=config.image_size if config.observation == "pixels" else "",
-                **{f"{part}_s": seconds for part, seconds in times.items() if part != "render_with_actor"},
+                **{f"{part}_s": seconds for part, seconds in times.items()},
                 rollout_backward_share=times["rollout_backward"] / times["iteration"],
                 **encoder,
                 cores=len(os.sched_getaffinity(0)),
