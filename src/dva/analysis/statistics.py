@@ -7,17 +7,20 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
+
+Values = Sequence[float] | npt.NDArray
 
 BOOTSTRAP_RESAMPLES = 10_000
 BOOTSTRAP_SEED = 0
 
 
-def sample_std(values: Sequence[float]) -> float:
+def sample_std(values: Values) -> float:
     """The standard deviation over seeds with Bessel's correction (ddof 1); 0 for one seed."""
     return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
 
 
-def bootstrap_interval(values: Sequence[float], level: float = 0.95) -> tuple[float, float]:
+def bootstrap_interval(values: Values, level: float = 0.95) -> tuple[float, float]:
     """The percentile-bootstrap ``level`` interval of the mean of ``values``: the seeds resampled
     with replacement :data:`BOOTSTRAP_RESAMPLES` times from a fixed seed."""
     samples = np.asarray(values, dtype=float)
