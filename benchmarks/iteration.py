@@ -50,12 +50,17 @@ def encoder_gradient_seconds(images: int, image_size: int, channels_in: int, tru
     return timed(jax.jit(jax.grad(loss)), (encoder, projection), pixels)[1]
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (what ``taskset`` gave it): the bound's and PyTorch's."""
+    return len(os.sched_getaffinity(0))
+
+
 def pytorch_gradient_seconds(python: str, images: int, image_size: int, channels_in: int) -> float:
     """:func:`encoder_gradient_seconds`'s work in PyTorch (``benchmarks/pytorch_encoder.py`` run by
     the interpreter ``python``), on as many threads as this process has cores."""
     script = Path(__file__).with_name("pytorch_encoder.py")
     arguments = ["--images", images, "--image-size", image_size, "--channels", channels_in]
-    arguments += ["--threads", len(os.sched_getaffinity(0))]
+    arguments += ["--threads", usable_cores()]
     printed = subprocess.run(
         [python, str(script), *map(str, arguments)], check=True, capture_output=True, text=True
     ).stdout
@@ -129,7 +134,7 @@ def main() -> None:
                 **{f"{part}_s": seconds for part, seconds in times.items()},
                 rollout_backward_share=times["rollout_backward"] / times["iteration"],
                 **encoder,
-                cores=len(os.sched_getaffinity(0)),
+                cores=usable_cores(),
                 device=machine_description(),
             ),
         )
@@ -148,12 +153,12 @@ def encoder_report(config, times: dict[str, float], pytorch: str | None) -> dict
     recomputed = config.actor_backward_chunk > 0
     bound = images * (flops["forward"] * recomputed + flops["backward"]) / rate
     passes = f"forward + backward: chunks of {config.actor_backward_chunk}" if recomputed else "backward: kept passes"
-    cores = len(os.sched_getaffinity(0))
+    render_ms_per_frame = 1e3 * times["render"] / images
     print(
         f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
-        f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s on {cores} core(s) → bound {bound:.3f} s for "
+        f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s on {usable_cores()} core(s) → bound {bound:.3f} s for "
         f"{images} images ({passes}); measured actor backward {times['actor_backward']:.3f} s = "
-        f"{times['actor_backward'] / bound:.2f}× the bound; rendering {1e3 * times['render'] / images:.2f} ms per frame"
+        f"{times['actor_backward'] / bound:.2f}× the bound; rendering {render_ms_per_frame:.2f} ms per frame"
     )
     ours = encoder_gradient_seconds(**REFERENCE)
     at_size = encoder_gradient_seconds(images, config.image_size, channels)
@@ -161,7 +166,7 @@ def encoder_report(config, times: dict[str, float], pytorch: str | None) -> dict
         "matmul_gflops": rate / 1e9,
         "bound_s": bound,
         "bound_ratio": times["actor_backward"] / bound,
-        "render_ms_per_frame": 1e3 * times["render"] / images,
+        "render_ms_per_frame": render_ms_per_frame,
         "reference_s": ours,
         "encoder_gradient_s": at_size,
         "pytorch_reference_s": "",

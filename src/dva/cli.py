@@ -40,6 +40,8 @@ from dva.runner.training import TrainingDiverged, check_budget, train
 from dva.tasks import TARGET_RETURNS, make_task, task_names
 from dva.tasks.physics import check_physics
 
+DEFAULT_TASK = "cartpole_swingup"  # what a command works on when no task is given
+
 
 @dataclasses.dataclass
 class TasksCommand:
@@ -66,7 +68,7 @@ class TasksCommand:
 class RenderCommand:
     """Write a PNG grid of the pixel observations and an mp4 of a random-action rollout."""
 
-    task: str = "cartpole_swingup"
+    task: str = DEFAULT_TASK
     num_envs: int = 16
     out: Path = Path("renders")
     image_size: int = 84
@@ -79,7 +81,6 @@ class RenderCommand:
     seed: int = 0
 
     def run(self) -> None:
-
         task = make_task(self.task)
         observations = PixelRenderer(task, self.num_envs, self.image_size)
         _, qpos = random_rollout(task, jax.random.PRNGKey(self.seed), self.num_envs, self.steps)
@@ -175,7 +176,7 @@ class TrainOptions:
 
     def resolved_task(self) -> str | None:
         """--task, else cartpole_swingup for a new run; None on --resume (the run's own)."""
-        return self.task or (None if self.resume else "cartpole_swingup")
+        return self.task or (None if self.resume else DEFAULT_TASK)
 
     def resolved_algo(self) -> str | None:
         """--algo, else dva for a new run; None on --resume (the run's own, from its run.json)."""
@@ -196,11 +197,10 @@ class TrainOptions:
         return overrides
 
     def run(self) -> None:
-
         if self.run_dir is None:
             if self.resume:
                 raise DvaUsageError("--resume needs --run-dir: the run to continue")
-            task = (self.task or "cartpole_swingup").replace(":", "_")
+            task = (self.task or DEFAULT_TASK).replace(":", "_")
             name = f"{task}_{self.resolved_algo()}_s{self.seed}_{time.strftime('%Y%m%d-%H%M%S')}"
             self.run_dir = Path("runs") / name
         tracker = None
@@ -271,7 +271,6 @@ class EvalCommand:
     seed: int = 0
 
     def run(self) -> None:
-
         if self.strip is not None and self.strip_frames < 1:
             raise DvaUsageError(f"--strip-frames {self.strip_frames} is not allowed; use a number ≥ 1")
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
@@ -316,7 +315,6 @@ class PlotCommand:
     """Also report, per setting, when its seeds first reached this return (e.g. 2× random)."""
 
     def run(self) -> None:
-
         for path in plot_runs(self.run_dirs, self.out, self.metric):
             print(f"wrote {path}")
         path, markdown = write_summary(self.run_dirs, self.out, self.metric, self.threshold)
@@ -403,14 +401,13 @@ class CompareCommand(ManyRuns):
     """fig4: D.Va vs DrQ-v2, CURL, DreamerV3 and TD-MPC2; fig6: D.Va vs state-to-visual DAgger
     (teacher's time included); fig7: D.Va vs visual SHAC; fig13: SHAC vs DPG on the state;
     ablation-value: D.Va without its critic; ablation-frames: D.Va with 1–6 stacked frames."""
-    tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
+    tasks: list[str] = dataclasses.field(default_factory=lambda: [DEFAULT_TASK])
     frames: list[int] | None = None
     """ablation-frames only: the stack sizes to compare (default 1 2 3 4 5 6)."""
     algos: list[str] | None = None
     """Run only these of the figure's algorithms (e.g. dva drqv2; default: all of them)."""
 
     def run(self) -> None:
-
         settings = figure_settings(self.figure, self.tasks, self.frames, self.algos)
         paths, markdown = run_settings(settings, self.out / self.figure, **self.run_options())
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")
@@ -423,14 +420,13 @@ class SweepCommand(ManyRuns):
     interrupted ones resumed), with its curves and table in OUT."""
 
     algo: AlgoName = "dva"
-    tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup"])
+    tasks: list[str] = dataclasses.field(default_factory=lambda: [DEFAULT_TASK])
     grid: list[str] = dataclasses.field(default_factory=list)
     """FIELD=V1,V2 per config field of the algorithm (e.g. actor_lr=1e-3,2e-3 horizon=16,32);
     values are read as JSON where they parse."""
     out: Path = Path("sweeps")
 
     def run(self) -> None:
-
         settings = grid_settings(self.algo, self.tasks, self.grid)
         paths, markdown = run_settings(settings, self.out, **self.run_options())
         print(markdown + "".join(f"wrote {path}\n" for path in paths), end="")

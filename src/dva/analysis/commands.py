@@ -60,7 +60,6 @@ class GradientsAnalysis:
     horizon: int | None = None
 
     def run(self) -> None:
-
         rows = compare_gradients(
             self.task, self.iterations, self.every, self.seed, num_envs=self.num_envs, horizon=self.horizon
         )
@@ -79,7 +78,6 @@ class GradnormAnalysis(SizeOverrides):
     """The D.Va variant compared with visual SHAC: dva (the paper's) | dva-privileged."""
 
     def run(self) -> None:
-
         if self.algo not in DVA_VARIANTS:
             raise DvaUsageError(f"--algo {self.algo} is not allowed; use one of: {', '.join(DVA_VARIANTS)}")
         out = self.out / "gradnorm"
@@ -110,7 +108,6 @@ class CostAnalysis:
     out: Path = Path("analysis")
 
     def run(self) -> None:
-
         check_image_size(self.image_size, self.image_size)  # fail before any compile
         rows = measure_costs(
             self.tasks, self.num_envs, self.horizon, self.image_size, self.seed, self.chunk, self.kept, self.timing
@@ -133,7 +130,6 @@ class BreakdownAnalysis(SizeOverrides):
     algo: str = "dva"
 
     def run(self) -> None:
-
         config, times = measure_iteration(self.task, self.algo, self.preset, self.seed, **self.overrides())
         title = (
             f"{self.algo} on {self.task}: {config.num_envs} envs × {config.horizon} steps"

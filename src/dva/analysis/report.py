@@ -275,7 +275,6 @@ class Section:
 
     def fingerprint(self, layout: Layout) -> str:
         """The hash of the code and configs the section measures, as they are now."""
-
         digest = hashlib.sha256()
         for source in sorted(self.meta.get("sources", [])):
             digest.update(source.encode() + (layout.root / source).read_bytes())

@@ -30,7 +30,6 @@ class ProgressLog:
     """``progress.csv`` (appended row by row, rewritten atomically when edited) and TensorBoard."""
 
     def __init__(self, run_dir: Path, fields: list[str], tracker: WandbTracker | None = None) -> None:
-
         self.path, self.fields, self.tracker = run_dir / "progress.csv", fields, tracker
         self.rows: list[dict] = []
         if self.path.exists():
