@@ -27,7 +27,7 @@ from flax import struct
 from dva.algorithms.base import Metrics
 from dva.envs.observations import DifferentiableEnv, Observation
 from dva.errors import DvaUsageError, check_numbers
-from dva.networks import Actor, Critic, RunningStats
+from dva.networks import NETWORK_STYLES, Actor, Critic, NetworkStyle, RunningStats
 from dva.tasks.base import EnvState
 
 
@@ -87,6 +87,11 @@ class SHACConfig:
     critic_hidden: tuple[int, ...] = (64, 64)
     image_size: int = 84
     frame_stack: int = 3
+    networks: NetworkStyle = "flax"
+    """How the actor's and critic's layers are ordered and initialised: "flax" (Dense → LayerNorm →
+    ELU, Flax's default initialisers) or "authors" (as the paper's authors' PyTorch code: Linear →
+    ELU → LayerNorm, orthogonal convolutions, trunk and critic, PyTorch's default for the actor's
+    MLP). The same shapes and parameter names either way."""
     lr_decay_iterations: int = 4000
     """Iterations over which the learning rates decay linearly to ``final_lr`` (then stay there);
     also the run's length when neither an iteration count nor a time budget is given."""
@@ -103,6 +108,8 @@ class SHACConfig:
             raise DvaUsageError(f"observation {self.observation!r} is not allowed; use 'pixels' or 'state'")
         if self.gradient not in ("decoupled", "full"):
             raise DvaUsageError(f"gradient {self.gradient!r} is not allowed; use 'decoupled' or 'full'")
+        if self.networks not in NETWORK_STYLES:
+            raise DvaUsageError(f"networks {self.networks!r} is not allowed; use one of {', '.join(NETWORK_STYLES)}")
         if self.actor_backward_chunk is None:  # run.json of earlier versions: the kept passes
             object.__setattr__(self, "actor_backward_chunk", 0)
         chunk = self.actor_backward_chunk
@@ -201,8 +208,9 @@ class SHAC:
             trunk=config.trunk,
             init_log_std=config.init_log_std,
             state_dim=self.task.obs_dim if config.state_prediction else 0,
+            style=config.networks,
         )
-        self.critic = Critic(config.critic_hidden)
+        self.critic = Critic(config.critic_hidden, style=config.networks)
 
         def optimizer(lr: float, steps: int) -> optax.GradientTransformation:
             """Adam after global-norm clipping, learning rate decayed linearly over ``steps``."""

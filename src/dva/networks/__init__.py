@@ -2,7 +2,7 @@
 encoder), :mod:`~dva.networks.actor_critic` (D.Va / SHAC), :mod:`~dva.networks.off_policy`
 (DrQ-v2, CURL), :mod:`~dva.networks.dreamer` (DreamerV3)."""
 
-from dva.networks.actor_critic import MLP, Actor, Critic, RunningStats
+from dva.networks.actor_critic import MLP, NETWORK_STYLES, Actor, Critic, NetworkStyle, RunningStats, dense
 from dva.networks.conv import CONV_DIMENSIONS, Conv, PixelEncoder, conv_valid, scale_pixels
 from dva.networks.dreamer import (
     RSSM,
@@ -27,6 +27,7 @@ from dva.networks.off_policy import (
 __all__ = [
     "CONV_DIMENSIONS",
     "MLP",
+    "NETWORK_STYLES",
     "RSSM",
     "Actor",
     "Conv",
@@ -36,6 +37,7 @@ __all__ = [
     "DeterministicActor",
     "DreamerMLP",
     "MLPEncoder",
+    "NetworkStyle",
     "PixelEncoder",
     "Projection",
     "ReluMLP",
@@ -44,6 +46,7 @@ __all__ = [
     "StridedConv4",
     "TwinQ",
     "conv_valid",
+    "dense",
     "feature_trunk",
     "norm_silu",
     "scale_pixels",

@@ -76,17 +76,19 @@ def scale_pixels(pixels: jax.Array) -> jax.Array:
 
 
 class Conv(nn.Module):
-    """3×3 VALID convolution + bias (the parameters of ``nn.Conv``; older checkpoints load)."""
+    """3×3 VALID convolution + bias (the parameters of ``nn.Conv``; older checkpoints load);
+    kernels LeCun normal, or ``orthogonal`` with gain √2 (each filter a scaled orthonormal vector:
+    PyTorch's ``orthogonal_`` on its (out, in·3·3) weight)."""
 
     features: int
     stride: int = 1
     size: int = 3
+    orthogonal: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        kernel = self.param(
-            "kernel", nn.initializers.lecun_normal(), (self.size, self.size, x.shape[-1], self.features)
-        )
+        init = nn.initializers.orthogonal(2**0.5) if self.orthogonal else nn.initializers.lecun_normal()
+        kernel = self.param("kernel", init, (self.size, self.size, x.shape[-1], self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
         return conv_valid(x, kernel, self.stride) + bias
 
@@ -95,14 +97,16 @@ class PixelEncoder(nn.Module):
     """DrQ-v2's conv stack: 4 × (3×3, 32 channels, ReLU), first stride 2; uint8 in, features out.
 
     Pixels are scaled ``x/255 − 0.5``. An 84×84×9 input gives 35×35×32 = 39200 features.
+    ``orthogonal``: the kernels' initialisation (see :class:`Conv`).
     """
 
     channels: int = 32
+    orthogonal: bool = False
 
     @nn.compact
     def __call__(self, pixels: jax.Array) -> jax.Array:
         batch_shape = pixels.shape[:-3]
         x = scale_pixels(pixels.reshape((-1,) + pixels.shape[-3:]))
         for stride in (2, 1, 1, 1):
-            x = nn.relu(Conv(self.channels, stride)(x))
+            x = nn.relu(Conv(self.channels, stride, orthogonal=self.orthogonal)(x))
         return x.reshape(batch_shape + (-1,))
