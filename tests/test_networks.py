@@ -9,7 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dva.networks import ConvDecoder, ConvEncoder, PixelEncoder, StridedConv4, conv_valid
+from dva.algorithms.shac import SHACConfig
+from dva.errors import DvaUsageError
+from dva.networks import MLP, Actor, ConvDecoder, ConvEncoder, Critic, PixelEncoder, StridedConv4, conv_valid
 from dva.runner.runtime import CPU_FLAGS, YNN_FUSION_FLAG, configure_xla
 
 
@@ -120,3 +122,56 @@ def test_dreamer_conv_stacks_keep_flax_layer_names_and_reject_odd_images():
     assert set(decoder_params) >= {f"ConvTranspose_{i}" for i in range(4)}
     with pytest.raises(ValueError, match=r"\(5, 4\).*even"):
         StridedConv4(2).init(jax.random.PRNGKey(0), jnp.zeros((1, 5, 4, 3)))
+
+
+def _layer_norm(x: np.ndarray) -> np.ndarray:
+    return (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-6)
+
+
+def _elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+@pytest.mark.parametrize("norm_last", [False, True])
+def test_mlp_orders_its_hidden_layers_as_asked(norm_last):
+    mlp = MLP((8, 5), 2, norm_last=norm_last)
+    x = jax.random.normal(jax.random.PRNGKey(0), (4, 3))
+    params = mlp.init(jax.random.PRNGKey(1), x)["params"]
+    h = np.asarray(x, np.float64)
+    for i in range(2):
+        h = h @ np.asarray(params[f"Dense_{i}"]["kernel"]) + np.asarray(params[f"Dense_{i}"]["bias"])
+        h = _layer_norm(_elu(h)) if norm_last else _elu(_layer_norm(h))  # LayerNorm's scale 1, bias 0 at init
+    expected = h @ np.asarray(params["Dense_2"]["kernel"]) + np.asarray(params["Dense_2"]["bias"])
+    np.testing.assert_allclose(mlp.apply({"params": params}, x), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_authors_networks_keep_the_parameters_and_take_the_authors_initialisation():
+    pixels = jnp.zeros((2, 24, 24, 9), jnp.uint8)  # 5 × 5 × 32 = 800 features
+    key = jax.random.PRNGKey(0)
+    authors = Actor(3, (32, 16), pixels=True, trunk=32, style="authors").init(key, pixels)["params"]
+    flax_style = Actor(3, (32, 16), pixels=True, trunk=32).init(key, pixels)["params"]
+    assert jax.tree.map(jnp.shape, authors) == jax.tree.map(jnp.shape, flax_style)  # checkpoints interchange
+    for name, conv in authors["PixelEncoder_0"].items():  # each filter a √2-scaled orthonormal vector
+        filters = np.asarray(conv["kernel"]).reshape(-1, 32)
+        np.testing.assert_allclose(filters.T @ filters, 2 * np.eye(32), atol=1e-4, err_msg=name)
+        assert not np.any(conv["bias"])
+    trunk = np.asarray(authors["Dense_0"]["kernel"])
+    np.testing.assert_allclose(trunk.T @ trunk, np.eye(32), atol=1e-4)
+    biases = []
+    for name, layer in authors["MLP_0"].items():  # PyTorch's nn.Linear default: U(±1/√fan_in)
+        if name.startswith("Dense"):
+            bound, kernel = layer["kernel"].shape[0] ** -0.5, np.asarray(layer["kernel"])
+            assert 0.8 * bound < np.abs(kernel).max() <= bound and np.abs(layer["bias"]).max() <= bound
+            assert abs(kernel.mean()) < 0.3 * bound  # centred, not [0, 2·bound)
+            biases.append(np.asarray(layer["bias"]) / bound)
+    assert abs(np.concatenate(biases).mean()) < 0.3
+    critic = Critic((64, 64), style="authors").init(key, jnp.zeros((1, 11)))["params"]["MLP_0"]
+    first = np.asarray(critic["Dense_0"]["kernel"])  # 11 × 64: orthonormal rows, gain √2
+    np.testing.assert_allclose(first @ first.T, 2 * np.eye(11), atol=1e-4)
+    last = np.asarray(critic["Dense_2"]["kernel"])  # 64 × 1: a column of norm √2
+    np.testing.assert_allclose(np.linalg.norm(last), 2**0.5, rtol=1e-5)
+
+
+def test_shac_config_refuses_an_unknown_network_style():
+    with pytest.raises(DvaUsageError, match="networks 'torch' is not allowed; use one of flax, authors"):
+        SHACConfig(networks="torch")  # type: ignore[arg-type]

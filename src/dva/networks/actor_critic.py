@@ -42,20 +42,20 @@ def dense(width: int, fan_in: int, init: LayerInit, gain: float = 1.0) -> nn.Den
 
 class MLP(nn.Module):
     """Hidden layers Dense → LayerNorm → ELU (``norm_last``: Dense → ELU → LayerNorm, the authors'
-    order), then a linear output layer; every Dense initialised by ``init`` (see :func:`dense`)."""
+    order), then a linear output layer; every Dense initialised by ``initializer`` (see :func:`dense`)."""
 
     hidden: Sequence[int]
     out: int
     norm_last: bool = False
-    init: LayerInit = "lecun"
+    initializer: LayerInit = "lecun"
     gain: float = 1.0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for width in self.hidden:
-            x = dense(width, x.shape[-1], self.init, self.gain)(x)
+            x = dense(width, x.shape[-1], self.initializer, self.gain)(x)
             x = nn.LayerNorm()(nn.elu(x)) if self.norm_last else nn.elu(nn.LayerNorm()(x))
-        return dense(self.out, x.shape[-1], self.init, self.gain)(x)
+        return dense(self.out, x.shape[-1], self.initializer, self.gain)(x)
 
 
 class Actor(nn.Module):
@@ -83,7 +83,7 @@ class Actor(nn.Module):
         if self.pixels:
             x = PixelEncoder(orthogonal=authors)(x)
             x = jnp.tanh(nn.LayerNorm()(dense(self.trunk, x.shape[-1], "orthogonal" if authors else "lecun")(x)))
-        mean = MLP(self.hidden, self.action_dim, norm_last=authors, init="pytorch" if authors else "lecun")(x)
+        mean = MLP(self.hidden, self.action_dim, norm_last=authors, initializer="pytorch" if authors else "lecun")(x)
         log_std = self.param("log_std", nn.initializers.constant(self.init_log_std), (self.action_dim,))
         log_std = jnp.broadcast_to(log_std, mean.shape)
         if predict_state:
@@ -101,7 +101,7 @@ class Critic(nn.Module):
     @nn.compact
     def __call__(self, state: jax.Array) -> jax.Array:
         if self.style == "authors":
-            return MLP(self.hidden, 1, norm_last=True, init="orthogonal", gain=2**0.5)(state)[..., 0]
+            return MLP(self.hidden, 1, norm_last=True, initializer="orthogonal", gain=2**0.5)(state)[..., 0]
         return MLP(self.hidden, 1)(state)[..., 0]
 
 
