@@ -38,6 +38,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import difflib
+import functools
 import hashlib
 import json
 import re
@@ -238,8 +239,15 @@ def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
 def csv_rows(path: Path) -> list[dict[str, str]]:
     if not path.is_file():
         raise DvaUsageError(f"the results data {path} does not exist")
+    status = path.stat()
+    return list(_parsed_csv(path.resolve(), status.st_mtime_ns, status.st_size))
+
+
+@functools.lru_cache(maxsize=4096)
+def _parsed_csv(path: Path, mtime_ns: int, size: int) -> tuple[dict[str, str], ...]:
+    """A CSV's rows, parsed once per version of the file (a report reads each file many times)."""
     with path.open() as f:
-        return list(csv.DictReader(f))
+        return tuple(csv.DictReader(f))
 
 
 def csv_field(row: dict[str, str], spec: str) -> str:
@@ -279,8 +287,7 @@ class Section:
         for source in sorted(self.meta.get("sources", [])):
             digest.update(source.encode() + (layout.root / source).read_bytes())
         for task, algo, preset in self.meta.get("configs", []):
-            config = dataclasses.asdict(make_config(task, algo, preset))
-            digest.update(json.dumps(config, sort_keys=True, default=str).encode())
+            digest.update(_config_json(task, algo, preset))
         return digest.hexdigest()[:16]
 
     def is_stale(self, layout: Layout) -> bool:
@@ -337,6 +344,12 @@ class Section:
             np.array([float(csv_field(row, spec["x"])) for row in rows]),
             np.array([[float(csv_field(row, column)) for column in spec["columns"]] for row in rows]),
         )
+
+
+@functools.lru_cache(maxsize=None)
+def _config_json(task: str, algo: str, preset: str) -> bytes:
+    """A config as the fingerprint hashes it (the presets are constants of the code)."""
+    return json.dumps(dataclasses.asdict(make_config(task, algo, preset)), sort_keys=True, default=str).encode()
 
 
 def placeholder(layout: Layout, text: str) -> str:
