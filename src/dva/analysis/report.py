@@ -346,7 +346,7 @@ class Section:
         )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _config_json(task: str, algo: str, preset: str) -> bytes:
     """A config as the fingerprint hashes it (the presets are constants of the code)."""
     return json.dumps(dataclasses.asdict(make_config(task, algo, preset)), sort_keys=True, default=str).encode()
