@@ -121,6 +121,7 @@ BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run
     ),
     (["report", "--stamp", "fig4_hopper"], "--stamp needs --commit"),
     (["eval", "RUN", "--strip", "FILE", "--strip-frames", "0"], "--strip-frames 0 is not allowed; use a number ≥ 1"),
+    (["eval", "RUN", "--episodes", "0"], "--episodes 0 is not allowed; use a number ≥ 1"),
 ]
 
 
@@ -194,7 +195,7 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
         assert (run_dir / name).exists()
     strip = tmp_path / "strip.png"
     main(["eval", str(run_dir), "--seed", "3", "--strip", str(strip), "--strip-frames", "3", "--video-size", "32"])
-    assert "return" in capsys.readouterr().out and not (tmp_path / "policy.mp4").exists()
+    assert "over 16 episodes" in capsys.readouterr().out and not (tmp_path / "policy.mp4").exists()
     image = iio.imread(strip)
     assert image.shape == (32 + 2 * 2, 3 * 32 + 4 * 2, 3)  # three 32-px views in a row
     first, last = image[2:34, 2:34], image[2:34, -34:-2]

@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
+from dva.envs.factory import EVALUATION_EPISODES, make_env
+from dva.errors import DvaUsageError
 from dva.runner import training
 from dva.runner.checkpoint import checkpoint_manager
 from dva.runner.compiled import build, compiled, initial_state, load_run
@@ -402,3 +404,19 @@ def test_the_same_seed_gives_the_same_numbers(tmp_path, algo, config):
             [{k: v for k, v in row.items() if k not in ("wall_time", "iteration_time")} for row in rows(run_dir)]
         )
     assert logged[0] == logged[1] and len(logged[0]) == 4
+
+
+def test_every_evaluation_runs_sixteen_episodes_on_envs_of_its_own():
+    from dva.runner.evaluation import evaluate_policy
+
+    few = make_env("cartpole_swingup", 4)
+    evaluation = few.evaluation_env()
+    assert EVALUATION_EPISODES == 16 and evaluation.num_envs == 16 and evaluation.evaluation_env() is evaluation
+    zero_force = jax.jit(lambda key: evaluate_policy(few, lambda o, m, k: (jax.numpy.zeros((16, 1)), m), key))
+    returns = np.asarray(zero_force(jax.random.PRNGKey(0)))
+    assert returns.shape == (16,) and np.all(np.isfinite(returns)) and returns.std() > 0  # 16 reset draws
+    sixteen = make_env("cartpole_swingup", 16)
+    assert sixteen.evaluation_env() is sixteen  # a pure wrapper: evaluations start from fresh resets anyway
+    assert make_env("cartpole_swingup", 4, evaluation_episodes=None).evaluation_env().num_envs == 4
+    with pytest.raises(DvaUsageError, match="evaluation_episodes = 0 is not allowed; use a whole number ≥ 1"):
+        make_env("cartpole_swingup", 4, evaluation_episodes=0)

@@ -20,7 +20,7 @@ from dva.analysis.commands import ANALYSES
 from dva.analysis.compare import Backend, FigureName, figure_settings, grid_settings, run_settings
 from dva.analysis.plots import plot_runs, write_summary
 from dva.configs import PresetName
-from dva.envs.factory import check_env_name, simulated_task
+from dva.envs.factory import EVALUATION_EPISODES, check_env_name, simulated_task
 from dva.envs.rendering import PixelRenderer
 from dva.envs.visualize import (
     image_grid,
@@ -256,10 +256,12 @@ TrainCommand.__doc__ = TrainOptions.__doc__
 
 @dataclasses.dataclass
 class EvalCommand:
-    """Replay a run's latest policy (deterministic, one episode per env), print the returns and
-    optionally write a video (the actor's camera view next to a larger view) and a strip of frames."""
+    """Replay a run's latest policy (deterministic), print the returns and optionally write a
+    video (the actor's camera view next to a larger view) and a strip of frames."""
 
     run_dir: tyro.conf.Positional[Path]
+    episodes: int = EVALUATION_EPISODES
+    """Episodes to run (one per env, in parallel); training's evaluations run 16."""
     video: Path | None = None
     """Where to write the mp4 (none: returns only)."""
     video_envs: int = 4
@@ -273,7 +275,9 @@ class EvalCommand:
     def run(self) -> None:
         if self.strip is not None and self.strip_frames < 1:
             raise DvaUsageError(f"--strip-frames {self.strip_frames} is not allowed; use a number ≥ 1")
-        spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed)
+        if self.episodes < 1:
+            raise DvaUsageError(f"--episodes {self.episodes} is not allowed; use a number ≥ 1")
+        spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed, self.episodes)
         task = simulated_task(spec.task, spec.physics)
         if task is None:  # dm_control's physics: no random reference or video from here
             print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f}")

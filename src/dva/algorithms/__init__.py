@@ -32,7 +32,7 @@ from dva.configs import (
     shac_preset,
     tdmpc2_preset,
 )
-from dva.envs.factory import RendererKind, check_env_name, make_env
+from dva.envs.factory import EVALUATION_EPISODES, RendererKind, check_env_name, make_env
 from dva.envs.observations import DifferentiableEnv
 from dva.errors import DvaUsageError
 
@@ -288,12 +288,19 @@ def saved_algo(algo: str, config: Any) -> str:
 
 
 def build_agent(
-    task_name: str, algo: str, config: Any, physics: str | None = None, mesh=None, teacher: TeacherRun | None = None
+    task_name: str,
+    algo: str,
+    config: Any,
+    physics: str | None = None,
+    mesh=None,
+    teacher: TeacherRun | None = None,
+    evaluation_episodes: int = EVALUATION_EPISODES,
 ) -> Agent:
     """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
     as long as the agent) and the agent; ``mesh``: the devices its environments split over;
     ``teacher``: the run it learns from, for an algorithm with a ``teacher_algo``
-    (:func:`dva.runner.compiled.load_teacher` loads one)."""
+    (:func:`dva.runner.compiled.load_teacher` loads one); ``evaluation_episodes``: how many
+    episodes an evaluation runs."""
     entry = check_algo(algo)
     if (entry.teacher_algo is None) != (teacher is None):
         needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"
@@ -307,6 +314,7 @@ def build_agent(
         action_repeat=getattr(config, "action_repeat", 1),  # configs without one act every control step
         physics=physics,
         mesh=mesh,
+        evaluation_episodes=evaluation_episodes,
     )
     if algo not in DMC_ALGOS and not isinstance(env, DifferentiableEnv):
         raise DvaUsageError(

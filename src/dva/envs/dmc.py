@@ -214,11 +214,18 @@ class DMCEnv:
     dm_control's own renderer. An :class:`~dva.envs.observations.Env`, not a differentiable one."""
 
     def __init__(
-        self, task: DMCTask, num_envs: int, image_size: int | None, frame_stack: int = 3, action_repeat: int = 2
+        self,
+        task: DMCTask,
+        num_envs: int,
+        image_size: int | None,
+        frame_stack: int = 3,
+        action_repeat: int = 2,
+        evaluation_episodes: int | None = None,
     ) -> None:
         check_stacking(frame_stack, action_repeat)
         self.task, self.num_envs, self.image_size = task, num_envs, image_size
         self.frame_stack, self.action_repeat = frame_stack, action_repeat
+        self.evaluation_episodes = evaluation_episodes or num_envs
         self.host = HostEnvs(task, num_envs, image_size, action_repeat)
         self._evaluation: DMCEnv | None = None
 
@@ -231,9 +238,12 @@ class DMCEnv:
         return self.image_size is not None
 
     def evaluation_env(self) -> DMCEnv:
-        """The same environments on a batch of their own, for evaluations."""
+        """The same environments on a batch of their own (``evaluation_episodes`` of them), for
+        evaluations."""
         if self._evaluation is None:
-            self._evaluation = DMCEnv(self.task, self.num_envs, self.image_size, self.frame_stack, self.action_repeat)
+            self._evaluation = DMCEnv(
+                self.task, self.evaluation_episodes, self.image_size, self.frame_stack, self.action_repeat
+            )
         return self._evaluation
 
     def _shapes(self) -> tuple[jax.ShapeDtypeStruct, jax.ShapeDtypeStruct]:

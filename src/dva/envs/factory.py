@@ -20,6 +20,7 @@ from dva.envs.dmc import DMCEnv, dmc_domain_task, is_dmc, make_dmc_task
 from dva.envs.observations import Env, PixelObservations, Renderer
 from dva.envs.rendering import PixelRenderer
 from dva.envs.soft_rendering import SoftRenderer
+from dva.errors import DvaUsageError
 from dva.tasks import TARGET_RETURNS, check_task_name, make_task
 from dva.tasks.base import Task
 
@@ -60,6 +61,11 @@ def target_return(name: str) -> float | None:
     return TARGET_RETURNS.get(name)
 
 
+EVALUATION_EPISODES = 16
+"""Episodes in every evaluation during training and in ``dva eval``, whatever the method and its
+number of training envs: one per env of an evaluation batch of this size."""
+
+
 def make_env(
     name: str,
     num_envs: int,
@@ -70,19 +76,28 @@ def make_env(
     action_repeat: int = 1,
     physics: str | None = None,
     mesh: Mesh | None = None,
+    evaluation_episodes: int | None = EVALUATION_EPISODES,
 ) -> Env:
     """``num_envs`` environments of the task ``name``, observed through ``renderer`` at
     ``image_size``² pixels with ``frame_stack`` frames, each action held ``action_repeat`` control
     steps; ``physics``: the contact model of this project's tasks (None: the task's); ``mesh``: the
-    devices a run's environments split over (each renders its share)."""
+    devices a run's environments split over (each renders its share). Evaluations run
+    ``evaluation_episodes`` episodes on a batch of envs of their own (None: on these envs)."""
     check_env_name(name)
+    if evaluation_episodes is not None and not (isinstance(evaluation_episodes, int) and evaluation_episodes >= 1):
+        raise DvaUsageError(f"evaluation_episodes = {evaluation_episodes!r} is not allowed; use a whole number ≥ 1")
     if is_dmc(name):
         pixels = image_size if renderer is not None else None
-        return DMCEnv(make_dmc_task(name), num_envs, pixels, frame_stack, action_repeat)
+        return DMCEnv(make_dmc_task(name), num_envs, pixels, frame_stack, action_repeat, evaluation_episodes)
     task = make_task(name, physics)
-    return PixelObservations(
-        task, num_envs, make_renderer(renderer, task, num_envs, image_size, mesh), frame_stack, action_repeat
-    )
+
+    def observed(count: int, mesh: Mesh | None, evaluation: PixelObservations | None = None) -> PixelObservations:
+        drawn = make_renderer(renderer, task, count, image_size, mesh)
+        return PixelObservations(task, count, drawn, frame_stack, action_repeat, evaluation)
+
+    if evaluation_episodes is None or (evaluation_episodes == num_envs and (mesh is None or mesh.size == 1)):
+        return observed(num_envs, mesh)  # evaluations run on these envs (a pure wrapper: from fresh resets)
+    return observed(num_envs, mesh, evaluation=observed(evaluation_episodes, None))
 
 
 def make_renderer(
@@ -120,6 +135,7 @@ class SplitRenderer:
 
 __all__ = [
     "DATA_AXIS",
+    "EVALUATION_EPISODES",
     "RendererKind",
     "SplitRenderer",
     "check_env_name",

@@ -115,6 +115,7 @@ class DvaVectorEnv(gymnasium.vector.VectorEnv):
             image_size=image_size,
             frame_stack=frame_stack,
             physics=physics,
+            evaluation_episodes=None,  # Gymnasium's users evaluate on their own
         )
         assert isinstance(env, DifferentiableEnv)  # a dva/<task>-v0 id names one of this project's tasks
         self.env, self.task = env, env.task

@@ -106,13 +106,20 @@ class PixelObservations:
     """
 
     def __init__(
-        self, task: Task, num_envs: int, renderer: Renderer | None = None, frame_stack: int = 3, action_repeat: int = 1
+        self,
+        task: Task,
+        num_envs: int,
+        renderer: Renderer | None = None,
+        frame_stack: int = 3,
+        action_repeat: int = 1,
+        evaluation: PixelObservations | None = None,
     ) -> None:
         if renderer is not None and renderer.num_envs != num_envs:
             raise DvaUsageError(f"the renderer draws {renderer.num_envs} envs; this wrapper needs {num_envs}")
         check_stacking(frame_stack, action_repeat)
         self.task, self.num_envs, self.renderer = task, num_envs, renderer
         self.frame_stack, self.action_repeat = frame_stack, action_repeat
+        self.evaluation = evaluation
 
     @property
     def episode_steps(self) -> int:
@@ -124,9 +131,9 @@ class PixelObservations:
         return self.renderer is not None
 
     def evaluation_env(self) -> PixelObservations:
-        """The env evaluations run on: this one (its state is the caller's, so evaluating leaves
-        training's episodes as they were)."""
-        return self
+        """The env evaluations run on: ``evaluation`` if given (a batch of its own size), else this
+        one (its state is the caller's, so evaluating leaves training's episodes as they were)."""
+        return self.evaluation or self
 
     @property
     def differentiable_pixels(self) -> bool:

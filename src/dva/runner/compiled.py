@@ -14,26 +14,27 @@ from jax.sharding import Mesh
 
 from dva.algorithms import build_agent, check_algo
 from dva.algorithms.base import Agent, TeacherRun
+from dva.envs.factory import EVALUATION_EPISODES
 from dva.errors import DvaUsageError
 from dva.runner.checkpoint import RunSpec, checkpoint_manager, restore
 from dva.runner.evaluation import evaluate_agent
 from dva.runner.logs import read_progress
 
 
-def build(spec: RunSpec, mesh: Mesh | None = None) -> Agent:
+def build(spec: RunSpec, mesh: Mesh | None = None, evaluation_episodes: int = EVALUATION_EPISODES) -> Agent:
     """The agent of a run (its renderer, which must stay alive, lives in ``agent.env``); one per
-    task, algorithm, config, physics and device mesh in a process (see :func:`_agent`)."""
-    return _agent(spec.task, spec.algo, spec.config, spec.physics, mesh)
+    task, algorithm, config, physics, device mesh and evaluation size in a process (see :func:`_agent`)."""
+    return _agent(spec.task, spec.algo, spec.config, spec.physics, mesh, evaluation_episodes)
 
 
 @functools.lru_cache(maxsize=4)
-def _agent(task: str, algo: str, config, physics: str | None, mesh: Mesh | None) -> Agent:
+def _agent(task: str, algo: str, config, physics: str | None, mesh: Mesh | None, evaluation_episodes: int) -> Agent:
     """Agents are stateless, so the runs of one process that share a configuration — a resume, the
     next seed of ``dva compare``, ``dva eval`` after ``dva train`` — share one agent, its renderer and,
     through :func:`compiled`, its traced and compiled functions (tracing the reverse pass through
     MJX alone takes tens of seconds on a CPU). The seed is not part of the config."""
     teacher = load_teacher(config.teacher) if check_algo(algo).teacher_algo else None
-    return build_agent(task, algo, config, physics, mesh, teacher)
+    return build_agent(task, algo, config, physics, mesh, teacher, evaluation_episodes)
 
 
 def load_teacher(run_dir: str | None) -> TeacherRun:
@@ -86,27 +87,31 @@ def abstract_state(agent: Agent, seed: int):
     return jax.eval_shape(compiled(agent).init, jax.random.PRNGKey(seed))
 
 
-def load_run(run_dir: Path) -> tuple[RunSpec, Agent, object]:
-    """A finished or running run: its spec, agent and latest checkpointed state."""
+def load_run(run_dir: Path, evaluation_episodes: int = EVALUATION_EPISODES) -> tuple[RunSpec, Agent, object]:
+    """A finished or running run: its spec, agent (evaluating ``evaluation_episodes`` episodes)
+    and latest checkpointed state."""
     run_dir = Path(run_dir)
     spec_path = run_dir / "run.json"
     if not spec_path.exists():
         raise DvaUsageError(f"{run_dir} is not a run directory (missing run.json)")
     spec = RunSpec.read(spec_path)
-    agent = build(spec)
+    agent = build(spec, evaluation_episodes=evaluation_episodes)
     manager = checkpoint_manager(run_dir)
     if manager.latest_step() is None:
         raise DvaUsageError(f"{run_dir} has no checkpoint yet")
     return spec, agent, restore(manager, abstract_state(agent, spec.seed), committed)
 
 
-def evaluate_run(run_dir: Path, seed: int = 0) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:
-    """Replay a run's latest policy deterministically for one episode per env.
+def evaluate_run(
+    run_dir: Path, seed: int = 0, episodes: int = EVALUATION_EPISODES
+) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:
+    """Replay a run's latest policy deterministically for ``episodes`` episodes, one per env of
+    an evaluation batch.
 
     Returns the spec, the episode returns (N,), and per step the ``qpos`` (T, N, nq) and the
     newest camera frame the actor saw (T, N, H, W, 3; empty for state observations).
     """
-    spec, agent, state = load_run(run_dir)
+    spec, agent, state = load_run(run_dir, episodes)
     returns, qpos, camera = jax.device_get(
         compiled(agent).evaluate_recorded(agent.policy(state), jax.random.PRNGKey(seed))
     )

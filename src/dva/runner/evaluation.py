@@ -63,7 +63,7 @@ def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
             lambda observation, memory, key: agent.act_recurrent(policy, observation, memory, key),
             key,
             record,
-            agent.initial_memory(agent.env.num_envs),
+            agent.initial_memory(agent.env.evaluation_env().num_envs),
         )
     return evaluate_policy(
         agent.env, lambda observation, memory, _key: (agent.act(policy, observation), memory), key, record
