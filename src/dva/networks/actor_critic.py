@@ -9,7 +9,7 @@ encoder's trunk; PyTorch's default ``U(±1/√fan_in)`` weights and biases for t
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Literal, get_args
 
 import flax.linen as nn
 import jax
@@ -19,7 +19,7 @@ from flax import struct
 from dva.networks.conv import PixelEncoder
 
 NetworkStyle = Literal["flax", "authors"]
-NETWORK_STYLES: tuple[str, ...] = ("flax", "authors")
+NETWORK_STYLES: tuple[str, ...] = get_args(NetworkStyle)
 LayerInit = Literal["lecun", "orthogonal", "pytorch"]
 
 
