@@ -86,6 +86,7 @@ def test_bad_image_size_is_one_line_error(capsys):
 BAD_INPUT = [  # (arguments, what the one-line message says); RUN is a fresh run directory
     (["train", "--minutes", "-3", "--run-dir", "RUN"], "--minutes -3.0 is not allowed; use a number > 0"),
     (["train", "--iterations", "0", "--run-dir", "RUN"], "--iterations 0 is not allowed; use a whole number > 0"),
+    (["train", "--eval-episodes", "0", "--run-dir", "RUN"], "--eval-episodes 0 is not allowed; use a whole number ≥ 1"),
     (["compare", "fig4", "--minutes", "0", "--out", "RUN"], "--minutes 0.0 is not allowed"),
     (["train", "--iterations", "1", "--run-dir", "FILE"], "is a file, not a directory"),
     (["train", "--iterations", "1", "--run-dir", "FILE/run"], "cannot be written (Not a directory)"),

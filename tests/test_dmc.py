@@ -143,7 +143,9 @@ def test_drqv2_trains_on_dm_control_and_the_differentiable_methods_refuse_it(tmp
     small = dict(
         num_envs=1, seed_steps=8, batch_size=8, hidden=(32, 32), feature_dim=16, updates_per_iteration=1, image_size=32
     )
-    run_dir = train("dmc:cartpole-swingup", "drqv2", iterations=2, run_dir=tmp_path / "run", eval_every=2, **small)
+    # One evaluation episode per training env: dm_control steps each evaluation env in Python.
+    run_dir = tmp_path / "run"
+    train("dmc:cartpole-swingup", "drqv2", iterations=2, run_dir=run_dir, eval_every=2, eval_episodes=None, **small)
     with (run_dir / "progress.csv").open() as f:
         rows = list(csv.DictReader(f))
     steps = [int(r["env_steps"]) for r in rows]

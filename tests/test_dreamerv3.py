@@ -46,6 +46,10 @@ TINY = dict(
 )
 
 
+# Evaluations on a batch of another size than training's: the policy's memory must follow it.
+EVAL_EPISODES = 3
+
+
 def rows(run_dir) -> list[dict]:
     with (run_dir / "progress.csv").open() as f:
         return list(csv.DictReader(f))
@@ -63,6 +67,7 @@ def dreamer_run(tmp_path_factory):
         iterations=20,
         run_dir=run_dir,
         eval_every=10,
+        eval_episodes=EVAL_EPISODES,
         checkpoint_every=10,
         **TINY,
     )
@@ -107,7 +112,7 @@ def test_dreamerv3_trains_checkpoints_and_evaluates_through_the_loop(dreamer_run
     assert [int(r["env_steps"]) for r in log] == [16 + 2 * i for i in range(21)]
     evaluations = [float(r["eval_return"]) for r in log if r["eval_return"] != ""]
     assert len(evaluations) == 3 and all(np.isfinite(evaluations))
-    _, agent, state = load_run(dreamer_run)
+    _, agent, state = load_run(dreamer_run, EVAL_EPISODES)
     assert int(state.iteration) == 20 and int(state.replay.current_index) == 8 + 20
     assert all(np.isfinite(float(r[name])) for r in log[1:] for name in agent.metric_names)
 
@@ -118,7 +123,7 @@ def test_world_model_reconstruction_improves(dreamer_run):
 
 
 def test_policy_memory_carries_the_past_and_forgets_it_at_a_restart(dreamer_run):
-    _, agent, state = load_run(dreamer_run)
+    _, agent, state = load_run(dreamer_run, EVAL_EPISODES)
     policy, observation = agent.policy(state), agent.env.observe(state.env)
     act = jax.jit(agent.act_recurrent)
     fresh = agent.initial_memory(agent.config.num_envs)
@@ -136,7 +141,7 @@ def test_policy_memory_carries_the_past_and_forgets_it_at_a_restart(dreamer_run)
 
 
 def test_replayed_sequences_restart_the_latent_at_episode_starts(dreamer_run):
-    _, agent, state = load_run(dreamer_run)
+    _, agent, state = load_run(dreamer_run, EVAL_EPISODES)
     steps = agent.replay.sample_sequences(state.replay, jax.random.PRNGKey(0))
     steps = steps.replace(first=jnp.zeros_like(steps.first).at[:, 3].set(True))
     loss, ((deter, stoch), terms) = jax.jit(agent.world_model_loss)(state.params["model"], steps, jax.random.PRNGKey(1))
@@ -153,7 +158,7 @@ class ImaginedActorLoss:
     value, aux and gradient in the actor, from one compile per actor gradient."""
 
     def __init__(self, run_dir) -> None:
-        _, self.agent, self.state = load_run(run_dir)
+        _, self.agent, self.state = load_run(run_dir, EVAL_EPISODES)
         steps = self.agent.replay.sample_sequences(self.state.replay, jax.random.PRNGKey(0))
         _, ((deter, stoch), _) = jax.jit(self.agent.world_model_loss)(
             self.state.params["model"], steps, jax.random.PRNGKey(1)
@@ -321,7 +326,7 @@ def test_the_gru_keeps_a_share_of_its_state_set_by_the_update_bias():
 def test_evaluation_samples_the_actor_and_keys_make_it_reproducible(dreamer_run):
     """As the 2023 reference's eval mode: the action is a sample of the actor's Gaussian (two keys,
     two actions; one key, one action), inside the box."""
-    _, agent, state = load_run(dreamer_run)
+    _, agent, state = load_run(dreamer_run, EVAL_EPISODES)
     policy, observation = agent.policy(state), agent.env.observe(state.env)
     memory = agent.initial_memory(agent.config.num_envs)
     act = jax.jit(agent.act_recurrent)

@@ -54,7 +54,8 @@ def rows(run_dir) -> list[dict]:
 @pytest.fixture(scope="module")
 def tdmpc2_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("tdmpc2") / "run"
-    train("cartpole_balance", "tdmpc2", preset="cpu", iterations=20, run_dir=run_dir, eval_every=10, **TINY)
+    # Evaluated on the training envs: TD-MPC2 plans at every evaluation step, for every episode.
+    train("cartpole_balance", "tdmpc2", iterations=20, run_dir=run_dir, eval_every=10, eval_episodes=None, **TINY)
     return run_dir
 
 
@@ -176,7 +177,7 @@ def test_tdmpc2_trains_and_evaluates_through_the_loop(tdmpc2_run):
     assert [int(r["env_steps"]) for r in log] == [12 + 2 * i for i in range(21)]
     evaluations = [float(r["eval_return"]) for r in log if r["eval_return"] != ""]
     assert len(evaluations) == 3 and all(np.isfinite(evaluations))
-    _, agent, state = load_run(tdmpc2_run)
+    _, agent, state = load_run(tdmpc2_run, evaluation_episodes=None)
     assert int(state.iteration) == 20 and int(state.replay.current_index) == 6 + 20
     assert all(np.isfinite(float(r[name])) for r in log[1:] for name in agent.metric_names)
     # the reward head starts at 0 for every reward (zero output layer) and learns the replay's
@@ -185,7 +186,7 @@ def test_tdmpc2_trains_and_evaluates_through_the_loop(tdmpc2_run):
 
 
 def test_an_update_moves_the_target_qs_by_tau(tdmpc2_run):
-    _, agent, state = load_run(tdmpc2_run)
+    _, agent, state = load_run(tdmpc2_run, evaluation_episodes=None)
     updated, metrics = jax.jit(agent.update)(state, jax.random.PRNGKey(3))
     tau = agent.config.tau
     expected = jax.tree.map(lambda q, target: tau * q + (1 - tau) * target, updated.params["q"], state.target_q)
@@ -211,7 +212,7 @@ def test_the_policy_update_trains_only_the_prior_and_the_model_update_not_the_pr
     """The world model's new parameters do not depend on the policy prior's loss (another loss,
     the same model), and the model loss passes no gradient to the prior (its TD target's actions
     come from the prior without gradient, as in the reference)."""
-    _, agent, state = load_run(tdmpc2_run)
+    _, agent, state = load_run(tdmpc2_run, evaluation_episodes=None)
     loud = LoudPolicyLoss(agent.env, agent.config)
     key = jax.random.PRNGKey(3)
     updated, _ = jax.jit(agent.update)(state, key)
@@ -323,7 +324,7 @@ def test_the_policy_loss_rewards_q_over_its_scale_and_entropy_and_updates_the_sc
 
 
 def test_evaluation_carries_the_plan_and_the_first_step_plans_afresh(tdmpc2_run):
-    _, agent, state = load_run(tdmpc2_run)
+    _, agent, state = load_run(tdmpc2_run, evaluation_episodes=None)
     policy, observation = agent.policy(state), agent.env.observe(state.env)
     act = jax.jit(agent.act_recurrent)
     fresh = agent.initial_memory(agent.config.num_envs)

@@ -20,9 +20,16 @@ from dva.errors import DvaUsageError
 from dva.runner import training
 from dva.runner.checkpoint import checkpoint_manager
 from dva.runner.compiled import build, compiled, initial_state, load_run
-from dva.runner.training import TrainingDiverged, train
+from dva.runner.training import TrainingDiverged
 
 SMALL = dict(num_envs=4, horizon=8, critic_minibatches=2, actor_hidden=(16,), critic_hidden=(16,))
+
+
+def train(*args, eval_episodes=None, **kwargs):
+    """:func:`dva.runner.training.train` evaluating one episode per training env, on those envs:
+    what these tests check does not depend on the evaluation's size, and a second batch of envs
+    would only add its compile and run time (the 16-episode batch is tested on its own below)."""
+    return training.train(*args, eval_episodes=eval_episodes, **kwargs)
 
 
 def rows(run_dir):
@@ -61,11 +68,11 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert times == sorted(times)  # the clock continues across the resume
     # A restored state is committed to the device in every leaf (zero-size ones too), as a fresh
     # one is: one signature for the compiled iteration.
-    spec, agent, restored = load_run(run_dir)
+    spec, agent, restored = load_run(run_dir, evaluation_episodes=None)
     assert all(leaf.committed for leaf in jax.tree.leaves(restored))
     # The two runs (and the loaded one) share one agent, and its iteration was compiled once for
     # both: the restored state has the fresh state's signature.
-    assert agent is build(spec)
+    assert agent is build(spec, evaluation_episodes=None)
     assert compiled(agent).iteration._cache_size() == 1
 
 
@@ -265,7 +272,7 @@ def test_off_policy_resume_restores_the_replay_buffer(tmp_path):
     # 6 rounds × 2 envs × action repeat 2 = 24 env steps before the first iteration.
     assert [int(r["env_steps"]) for r in log] == [24 + 4 * i for i in range(5)]
     assert all(r["critic_loss"] not in ("", "nan") for r in log[1:]) and log[-1]["eval_return"] != ""
-    _, agent, state = load_run(run_dir)
+    _, agent, state = load_run(run_dir, evaluation_episodes=None)
     assert int(state.iteration) == 4 and int(state.replay.current_index) == 6 + 4  # seed rounds + iterations
     frames = np.asarray(state.replay.experience.frame[:, :10])
     assert frames.reshape(2, 10, -1).max(axis=-1).min() > 0  # every step of both envs was kept
@@ -378,7 +385,7 @@ def test_a_run_written_by_version_0_2_0_resumes_under_the_variant_it_trained(tmp
         train("cartpole_swingup", "dva", run_dir=run_dir, resume=True, iterations=1)
     train("cartpole_swingup", run_dir=run_dir, resume=True, iterations=1, eval_every=1)
     assert json.loads((run_dir / "run.json").read_text())["algo"] == "dva"  # the file is left as written
-    spec, _, state = load_run(run_dir)
+    spec, _, state = load_run(run_dir, evaluation_episodes=None)
     assert (spec.algo, spec.config.state_prediction, int(state.iteration)) == ("dva-privileged", 10.0, 3)
     assert (run_dir / "progress.csv").read_text().splitlines()[0] == header
     after = rows(run_dir)

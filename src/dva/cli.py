@@ -160,6 +160,9 @@ class TrainOptions:
     eval_every: int = 50
     eval_minutes: float | None = None
     """Also evaluate once this many minutes have passed since the last evaluation."""
+    eval_episodes: int | None = EVALUATION_EPISODES
+    """Episodes each evaluation averages, from fresh resets on envs of its own (every method in
+    the docs' results: 16); None: one per training env, on the training envs."""
     checkpoint_every: int | None = None
     """Checkpoint every this many iterations (default: by time, --checkpoint-minutes)."""
     checkpoint_minutes: float = 2.0
@@ -217,6 +220,7 @@ class TrainOptions:
             resume=self.resume,
             eval_every=self.eval_every,
             eval_minutes=self.eval_minutes,
+            eval_episodes=self.eval_episodes,
             checkpoint_every=self.checkpoint_every,
             checkpoint_minutes=self.checkpoint_minutes,
             physics=self.physics,
@@ -227,7 +231,9 @@ class TrainOptions:
         print(f"run written to {run_dir}")
         if self.report:
             PlotCommand([run_dir], out=run_dir).run()
-            EvalCommand(run_dir, video=run_dir / "policy.mp4", video_size=self.video_size).run()
+            EvalCommand(
+                run_dir, self.eval_episodes, video=run_dir / "policy.mp4", video_size=self.video_size
+            ).run()  # as many episodes as training's evaluations: the same compiled agent
             if tracker is not None:
                 tracker.log_video(run_dir / "policy.mp4")
         if tracker is not None:
@@ -260,8 +266,9 @@ class EvalCommand:
     video (the actor's camera view next to a larger view) and a strip of frames."""
 
     run_dir: tyro.conf.Positional[Path]
-    episodes: int = EVALUATION_EPISODES
-    """Episodes to run (one per env, in parallel); training's evaluations run 16."""
+    episodes: int | None = EVALUATION_EPISODES
+    """Episodes to run (one per env, in parallel; None: as many as the run trains on); training's
+    evaluations run --eval-episodes (16)."""
     video: Path | None = None
     """Where to write the mp4 (none: returns only)."""
     video_envs: int = 4
@@ -275,7 +282,7 @@ class EvalCommand:
     def run(self) -> None:
         if self.strip is not None and self.strip_frames < 1:
             raise DvaUsageError(f"--strip-frames {self.strip_frames} is not allowed; use a number ≥ 1")
-        if self.episodes < 1:
+        if self.episodes is not None and self.episodes < 1:
             raise DvaUsageError(f"--episodes {self.episodes} is not allowed; use a number ≥ 1")
         spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed, self.episodes)
         task = simulated_task(spec.task, spec.physics)

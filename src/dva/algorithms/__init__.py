@@ -294,13 +294,13 @@ def build_agent(
     physics: str | None = None,
     mesh=None,
     teacher: TeacherRun | None = None,
-    evaluation_episodes: int = EVALUATION_EPISODES,
+    evaluation_episodes: int | None = EVALUATION_EPISODES,
 ) -> Agent:
     """``algo`` with ``config`` on ``task_name``: the task, its pixel wrapper (whose renderer lives
     as long as the agent) and the agent; ``mesh``: the devices its environments split over;
     ``teacher``: the run it learns from, for an algorithm with a ``teacher_algo``
     (:func:`dva.runner.compiled.load_teacher` loads one); ``evaluation_episodes``: how many
-    episodes an evaluation runs."""
+    episodes an evaluation runs (None: one per env, on the training envs)."""
     entry = check_algo(algo)
     if (entry.teacher_algo is None) != (teacher is None):
         needs = f"a {entry.teacher_algo} teacher run" if entry.teacher_algo else "no teacher"

@@ -21,14 +21,16 @@ from dva.runner.evaluation import evaluate_agent
 from dva.runner.logs import read_progress
 
 
-def build(spec: RunSpec, mesh: Mesh | None = None, evaluation_episodes: int = EVALUATION_EPISODES) -> Agent:
+def build(spec: RunSpec, mesh: Mesh | None = None, evaluation_episodes: int | None = EVALUATION_EPISODES) -> Agent:
     """The agent of a run (its renderer, which must stay alive, lives in ``agent.env``); one per
     task, algorithm, config, physics, device mesh and evaluation size in a process (see :func:`_agent`)."""
     return _agent(spec.task, spec.algo, spec.config, spec.physics, mesh, evaluation_episodes)
 
 
 @functools.lru_cache(maxsize=4)
-def _agent(task: str, algo: str, config, physics: str | None, mesh: Mesh | None, evaluation_episodes: int) -> Agent:
+def _agent(
+    task: str, algo: str, config, physics: str | None, mesh: Mesh | None, evaluation_episodes: int | None
+) -> Agent:
     """Agents are stateless, so the runs of one process that share a configuration — a resume, the
     next seed of ``dva compare``, ``dva eval`` after ``dva train`` — share one agent, its renderer and,
     through :func:`compiled`, its traced and compiled functions (tracing the reverse pass through
@@ -87,7 +89,7 @@ def abstract_state(agent: Agent, seed: int):
     return jax.eval_shape(compiled(agent).init, jax.random.PRNGKey(seed))
 
 
-def load_run(run_dir: Path, evaluation_episodes: int = EVALUATION_EPISODES) -> tuple[RunSpec, Agent, object]:
+def load_run(run_dir: Path, evaluation_episodes: int | None = EVALUATION_EPISODES) -> tuple[RunSpec, Agent, object]:
     """A finished or running run: its spec, agent (evaluating ``evaluation_episodes`` episodes)
     and latest checkpointed state."""
     run_dir = Path(run_dir)
@@ -103,7 +105,7 @@ def load_run(run_dir: Path, evaluation_episodes: int = EVALUATION_EPISODES) -> t
 
 
 def evaluate_run(
-    run_dir: Path, seed: int = 0, episodes: int = EVALUATION_EPISODES
+    run_dir: Path, seed: int = 0, episodes: int | None = EVALUATION_EPISODES
 ) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:
     """Replay a run's latest policy deterministically for ``episodes`` episodes, one per env of
     an evaluation batch.

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from dva.algorithms import check_algo, make_config
 from dva.algorithms.base import Agent, Metrics
-from dva.envs.factory import env_physics
+from dva.envs.factory import EVALUATION_EPISODES, env_physics
 from dva.errors import DvaUsageError
 from dva.runner.checkpoint import (
     Checkpoints,
@@ -69,6 +69,7 @@ def train(
     resume: bool = False,
     eval_every: int | None = 50,
     eval_minutes: float | None = None,
+    eval_episodes: int | None = EVALUATION_EPISODES,
     checkpoint_every: int | None = None,
     checkpoint_minutes: float = 2.0,
     physics: str | None = None,
@@ -88,7 +89,9 @@ def train(
     clock), or else the agent's ``default_iterations``. Evaluates at iteration 0, every
     ``eval_every`` iterations, after any iteration that ends ``eval_minutes`` or more after the
     last evaluation (the same resolution in wall-clock for fast and slow iterations: what a
-    time-to-threshold comparison needs) and at the end (never when both are None). Checkpoints every
+    time-to-threshold comparison needs) and at the end (never when both are None); each evaluation
+    averages ``eval_episodes`` episodes from fresh resets on envs of its own (None: one per
+    training env, on the training envs themselves — no second batch to build). Checkpoints every
     ``checkpoint_every`` iterations if given, else every
     ``checkpoint_minutes`` (an off-policy agent's replay makes a checkpoint hundreds of MB), and at
     the end. ``resume`` continues the run in ``run_dir`` from its last checkpoint. ``devices``:
@@ -98,6 +101,7 @@ def train(
     clock = RunClock()
     run_dir = Path(run_dir)
     check_budget(iterations, minutes)
+    check_eval_episodes(eval_episodes)
     if resume:
         spec = resumed_run(run_dir, task, algo)
     elif task is None:
@@ -107,12 +111,13 @@ def train(
         check_new_run_dir(run_dir)
         config = make_config(task, algo, preset, **config_overrides)
         began = time.perf_counter()
-        config = train_teacher(algo, config, task, preset, seed, run_dir, physics)  # DAgger's, if it has none
+        # DAgger's teacher, if it has none
+        config = train_teacher(algo, config, task, preset, seed, run_dir, physics, eval_episodes)
         clock.exclude(time.perf_counter() - began)  # the teacher's time counts through agent.prior_cost
         physics = env_physics(task, physics)
         spec = write_spec(run_dir, RunSpec(task, algo, preset, seed, config, physics))
     mesh = run_mesh(spec, devices)
-    agent = build(spec, mesh)
+    agent = build(spec, mesh, eval_episodes)
     checkpoints = Checkpoints(checkpoint_manager(run_dir), checkpoint_every, checkpoint_minutes)
     if tracker is not None:
         tracker.start(run_dir, spec.to_dict())
@@ -157,7 +162,13 @@ def check_budget(iterations: int | None, minutes: float | None) -> None:
         raise DvaUsageError(f"--minutes {minutes} is not allowed; use a number > 0")
 
 
-def train_teacher(algo: str, config, task: str, preset: str, seed: int, run_dir: Path, physics):
+def check_eval_episodes(episodes: int | None) -> None:
+    """An evaluation averages at least one episode (None: one per training env)."""
+    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1):
+        raise DvaUsageError(f"--eval-episodes {episodes!r} is not allowed; use a whole number ≥ 1")
+
+
+def train_teacher(algo: str, config, task: str, preset: str, seed: int, run_dir: Path, physics, eval_episodes):
     """For an algorithm that learns from a teacher run (DAgger) and has none: train one with the
     teacher's algorithm for ``config.teacher_minutes`` into ``run_dir/teacher``; the config then
     names it."""
@@ -172,6 +183,7 @@ def train_teacher(algo: str, config, task: str, preset: str, seed: int, run_dir:
         minutes=config.teacher_minutes,
         run_dir=run_dir / "teacher",
         physics=physics,
+        eval_episodes=eval_episodes,
     )
     return dataclasses.replace(config, teacher=str(teacher_dir))
 
