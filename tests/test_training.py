@@ -452,3 +452,5 @@ def test_every_evaluation_runs_sixteen_episodes_on_envs_of_its_own():
     assert make_env("cartpole_swingup", 4, evaluation_episodes=None).evaluation_env().num_envs == 4
     with pytest.raises(DvaUsageError, match="evaluation_episodes = 0 is not allowed; use a whole number ≥ 1"):
         make_env("cartpole_swingup", 4, evaluation_episodes=0)
+    with pytest.raises(DvaUsageError, match="evaluation_episodes = True is not allowed; use a whole number ≥ 1"):
+        make_env("cartpole_swingup", 4, evaluation_episodes=True)

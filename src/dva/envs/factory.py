@@ -66,6 +66,14 @@ EVALUATION_EPISODES = 16
 number of training envs: one per env of an evaluation batch of this size."""
 
 
+def check_evaluation_episodes(episodes: int | None, flag: str | None = None) -> None:
+    """An evaluation averages a whole number ≥ 1 of episodes (None: one per training env); the
+    error names ``flag`` (a command-line option) where given, else the argument."""
+    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1):
+        named = f"{flag} {episodes!r}" if flag else f"evaluation_episodes = {episodes!r}"
+        raise DvaUsageError(f"{named} is not allowed; use a whole number ≥ 1")
+
+
 def make_env(
     name: str,
     num_envs: int,
@@ -84,8 +92,7 @@ def make_env(
     devices a run's environments split over (each renders its share). Evaluations run
     ``evaluation_episodes`` episodes on a batch of envs of their own (None: on these envs)."""
     check_env_name(name)
-    if evaluation_episodes is not None and not (isinstance(evaluation_episodes, int) and evaluation_episodes >= 1):
-        raise DvaUsageError(f"evaluation_episodes = {evaluation_episodes!r} is not allowed; use a whole number ≥ 1")
+    check_evaluation_episodes(evaluation_episodes)
     if is_dmc(name):
         pixels = image_size if renderer is not None else None
         return DMCEnv(make_dmc_task(name), num_envs, pixels, frame_stack, action_repeat, evaluation_episodes)
@@ -139,6 +146,7 @@ __all__ = [
     "RendererKind",
     "SplitRenderer",
     "check_env_name",
+    "check_evaluation_episodes",
     "dmc_domain_task",
     "env_physics",
     "is_dmc",

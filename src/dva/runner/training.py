@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from dva.algorithms import check_algo, make_config
 from dva.algorithms.base import Agent, Metrics
-from dva.envs.factory import EVALUATION_EPISODES, env_physics
+from dva.envs.factory import EVALUATION_EPISODES, check_evaluation_episodes, env_physics
 from dva.errors import DvaUsageError
 from dva.runner.checkpoint import (
     Checkpoints,
@@ -101,7 +101,7 @@ def train(
     clock = RunClock()
     run_dir = Path(run_dir)
     check_budget(iterations, minutes)
-    check_eval_episodes(eval_episodes)
+    check_evaluation_episodes(eval_episodes, "--eval-episodes")  # before the run's folder is written
     if resume:
         spec = resumed_run(run_dir, task, algo)
     elif task is None:
@@ -160,12 +160,6 @@ def check_budget(iterations: int | None, minutes: float | None) -> None:
         raise DvaUsageError(f"--iterations {iterations} is not allowed; use a whole number > 0")
     if minutes is not None and not minutes > 0:
         raise DvaUsageError(f"--minutes {minutes} is not allowed; use a number > 0")
-
-
-def check_eval_episodes(episodes: int | None) -> None:
-    """An evaluation averages at least one episode (None: one per training env)."""
-    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1):
-        raise DvaUsageError(f"--eval-episodes {episodes!r} is not allowed; use a whole number ≥ 1")
 
 
 def train_teacher(algo: str, config, task: str, preset: str, seed: int, run_dir: Path, physics, eval_episodes):
