@@ -108,7 +108,7 @@ def test_analyze_cost_end_to_end(tmp_path, capsys):
 
 
 @pytest.mark.slow  # ≈ 6 min of compiling on 2 cores
-def test_analyze_breakdown_and_gradnorm_end_to_end(tmp_path):
+def test_analyze_breakdown_and_gradnorm_end_to_end(tmp_path, capsys):
     main(["analyze", "breakdown", "--task", "cartpole_swingup", *TINY, "--out", str(tmp_path)])
     parts = read_rows(tmp_path / "breakdown_cartpole_swingup" / "breakdown.csv")
     assert [p["part"] for p in parts][:3] == ["simulation forward", "simulation backward", "rendering"]
@@ -125,6 +125,19 @@ def test_analyze_breakdown_and_gradnorm_end_to_end(tmp_path):
     ]
     assert all(np.isfinite(float(r["actor_grad_norm"])) and float(r["actor_grad_norm"]) > 0 for r in norms)
     assert iio.imread(tmp_path / "gradnorm" / "gradnorm.png").ndim == 3
+
+    # Asked for more iterations, the analysis continues its runs from their checkpoints.
+    main(["analyze", "gradnorm", "--tasks", "cartpole_swingup", "--iterations", "3", *TINY, "--out", str(tmp_path)])
+    longer = read_rows(tmp_path / "gradnorm" / "gradnorm.csv")
+    assert [r["iteration"] for r in longer if r["algo"] == "dva"] == ["1", "2", "3"]
+    kept = [(r["algo"], r["iteration"], r["actor_grad_norm"]) for r in longer if r["iteration"] != "3"]
+    assert kept == [(r["algo"], r["iteration"], r["actor_grad_norm"]) for r in norms]
+    # A run of another configuration in the same folder is refused, not overwritten.
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["analyze", "gradnorm", "--tasks", "cartpole_swingup", "--iterations", "3", *TINY[:2], "--horizon", "4",
+              "--image-size", "24", "--out", str(tmp_path)])  # fmt: skip
+    assert "holds a run of another setting" in capsys.readouterr().err
 
 
 def test_analyze_rejects_unknown_task(capsys):

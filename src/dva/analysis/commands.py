@@ -70,7 +70,8 @@ class GradientsAnalysis:
 @dataclasses.dataclass
 class GradnormAnalysis(SizeOverrides):
     """Paper Fig 9: actor gradient norm over training, D.Va vs visual SHAC, per task (CPU preset
-    unless overridden). Writes OUT/gradnorm/gradnorm.{csv,png,md} and the runs under it."""
+    unless overridden). Writes OUT/gradnorm/gradnorm.{csv,png,md} and the runs under it, which a
+    second call resumes, extends or reuses."""
 
     tasks: list[str] = dataclasses.field(default_factory=lambda: ["cartpole_swingup", "hopper", "ant"])
     iterations: int = 100

@@ -3,21 +3,31 @@
 Each pair is trained with the same preset and seed (no evaluations: only the norms matter). The
 divergence guard is lifted to NaN only — an update from a huge gradient is still clipped to
 ``clip_grad_norm`` — so the norm can be followed as far as it goes; a run that turns NaN ends there
-and the report says where.
+and the report says where. Runs checkpoint every few minutes: running the analysis again resumes an
+interrupted run, extends a shorter one and reuses a finished one (a run of another configuration in
+its folder is refused).
 """
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
 from dva.analysis.bench import markdown_table, write_csv
+from dva.analysis.compare import Setting, check_same_setting
 from dva.analysis.cost import COMPARED
 from dva.analysis.plots import read_curve
+from dva.runner.checkpoint import checkpoint_manager
 from dva.runner.training import TrainingDiverged, train
+
+# Where a run that turned NaN records its last iteration and norm (the rejected update is not in
+# its log), so that a later analysis of the same run reports it again without training.
+DIVERGED = "diverged.json"
 
 
 def gradient_norms(
@@ -38,29 +48,15 @@ def gradient_norms(
     for task in tasks:
         for algo in algos:
             run_dir = out_dir / "runs" / f"{task}_{algo}_s{seed}"
-            shutil.rmtree(run_dir, ignore_errors=True)  # a fresh run each time the analysis runs
-            diverged: TrainingDiverged | None = None
-            try:
-                train(
-                    task,
-                    algo,
-                    preset=preset,
-                    seed=seed,
-                    iterations=iterations,
-                    run_dir=run_dir,
-                    eval_every=None,
-                    checkpoint_every=iterations,
-                    abort_grad_norm=float("inf"),
-                    **overrides,
-                )
-            except TrainingDiverged as error:
-                diverged = error
+            diverged = train_for_norms(task, algo, iterations, run_dir, seed, preset, overrides)
+            if diverged is not None and diverged["iteration"] > iterations:
+                diverged = None  # a longer run of the same setting: its first ``iterations`` were healthy
             curve = read_curve(run_dir, "actor_grad_norm")
-            norms = list(curve["actor_grad_norm"])
+            norms = list(curve["actor_grad_norm"])[:iterations]
             steps = list(range(1, len(norms) + 1))
             if diverged is not None:  # the rejected update's norm was not logged
-                norms.append(float(diverged.logged["actor_grad_norm"]))
-                steps.append(diverged.iteration)
+                norms.append(diverged["actor_grad_norm"])
+                steps.append(diverged["iteration"])
             rows += [{"task": task, "algo": algo, "iteration": i, "actor_grad_norm": g} for i, g in zip(steps, norms)]
             finite = np.array([g for g in norms if np.isfinite(g)])
             summary.append(
@@ -70,10 +66,38 @@ def gradient_norms(
                     "iterations": len(norms),
                     "median_norm": float(np.median(finite)) if finite.size else float("nan"),
                     "max_norm": float(finite.max()) if finite.size else float("nan"),
-                    "diverged_at": diverged.iteration if diverged else "",
+                    "diverged_at": diverged["iteration"] if diverged else "",
                 }
             )
     return rows, summary
+
+
+def train_for_norms(
+    task: str, algo: str, iterations: int, run_dir: Path, seed: int, preset: str, overrides: dict[str, Any]
+) -> dict | None:
+    """Train, resume or reuse the run in ``run_dir`` until it has ``iterations``; returns where it
+    diverged (``{"iteration", "actor_grad_norm"}``), or None."""
+    settings = dict(overrides, abort_grad_norm=float("inf"))
+    if (run_dir / "run.json").exists():
+        check_same_setting(Setting(algo, task, algo, tuple(settings.items())), preset, run_dir)
+    marker = run_dir / DIVERGED
+    if marker.exists():
+        return json.loads(marker.read_text())
+    done = checkpoint_manager(run_dir).latest_step() if (run_dir / "run.json").exists() else None
+    if done is None:
+        shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
+        how: dict[str, Any] = dict(preset=preset, seed=seed, iterations=iterations, **settings)
+    elif done < iterations:
+        how = dict(resume=True, iterations=iterations - done)
+    else:
+        return None
+    try:
+        train(task, algo, run_dir=run_dir, eval_every=None, **how)  # checkpoints every few minutes
+    except TrainingDiverged as error:
+        diverged = {"iteration": error.iteration, "actor_grad_norm": float(error.logged["actor_grad_norm"])}
+        marker.write_text(json.dumps(diverged))
+        return diverged
+    return None
 
 
 def write_gradnorm_report(rows: list[dict], summary: list[dict], out_dir: Path, title: str) -> tuple[list[Path], str]:
