@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from dva.algorithms import ALGORITHMS, build_agent, config_from_dict, make_config
+from dva.analysis.compare import saved_iteration
 from dva.envs.factory import EVALUATION_EPISODES, make_env
 from dva.errors import DvaUsageError
 from dva.runner import training
@@ -264,6 +265,8 @@ def test_diverging_gradient_stops_training_and_keeps_the_last_good_checkpoint(tm
     ):
         train("cartpole_swingup", iterations=5, run_dir=run_dir, resume=True, checkpoint_every=1)
     assert checkpoint_manager(run_dir).latest_step() == 2
+    assert saved_iteration(run_dir) == 2  # where dva compare and dva analyze gradnorm resume it
+    assert saved_iteration(tmp_path / "no run") is None
     assert [int(r["iteration"]) for r in rows(run_dir)] == [0, 1, 2]
 
 

@@ -132,6 +132,12 @@ def is_complete(run_dir: Path, minutes: float) -> bool:
     return marker.exists() and json.loads(marker.read_text())["minutes"] >= minutes
 
 
+def saved_iteration(run_dir: Path) -> int | None:
+    """The iteration of the last checkpoint of the run in ``run_dir`` (None: no run there, or none
+    saved yet): where a resumed run continues from."""
+    return checkpoint_manager(run_dir).latest_step() if (run_dir / "run.json").exists() else None
+
+
 def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path) -> str:
     """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
 
@@ -140,7 +146,7 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
     if is_complete(run_dir, minutes):
         return "skipped (complete)"
     how: dict[str, Any] | None  # train()'s arguments, or None: nothing to train
-    if (run_dir / "run.json").exists() and checkpoint_manager(run_dir).latest_step() is not None:
+    if saved_iteration(run_dir) is not None:
         logged = read_progress(run_dir)  # the minutes it has, wall_time of its last row
         left = minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes
         # a run cut short after its budget was spent (before its completion mark) needs no training

@@ -19,10 +19,9 @@ import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
 from dva.analysis.bench import markdown_table, write_csv
-from dva.analysis.compare import Setting, check_same_setting
+from dva.analysis.compare import Setting, check_same_setting, saved_iteration
 from dva.analysis.cost import COMPARED
 from dva.analysis.plots import read_curve
-from dva.runner.checkpoint import checkpoint_manager
 from dva.runner.training import TrainingDiverged, train
 
 # Where a run that turned NaN records its last iteration and norm (the rejected update is not in
@@ -83,7 +82,7 @@ def train_for_norms(
     marker = run_dir / DIVERGED
     if marker.exists():
         return json.loads(marker.read_text())
-    done = checkpoint_manager(run_dir).latest_step() if (run_dir / "run.json").exists() else None
+    done = saved_iteration(run_dir)
     if done is None:
         shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
         how: dict[str, Any] = dict(preset=preset, seed=seed, iterations=iterations, **settings)
