@@ -56,9 +56,15 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert first[0]["eval_return"] != "" and first[1]["eval_return"] == ""
     assert first[-1]["eval_return"] != ""  # evaluated at iteration 3
     assert (run_dir / "checkpoints" / "3").is_dir() and (run_dir / "tensorboard").is_dir()
+    # The latest finished episode's return carries across the resume until an episode ends (none
+    # does within these iterations): the last row's, set here to a value no iteration logs.
+    lines = (run_dir / "progress.csv").read_text().splitlines()
+    last = dict(zip(lines[0].split(","), lines[-1].split(","))) | {"train_return": "123.5"}
+    (run_dir / "progress.csv").write_text("\n".join([*lines[:-1], ",".join(last.values())]) + "\n")
     train("cartpole_swingup", iterations=2, run_dir=run_dir, resume=True, eval_every=3, checkpoint_every=2)
     resumed = rows(run_dir)
     assert [int(r["iteration"]) for r in resumed] == [0, 1, 2, 3, 4, 5]
+    assert [r["train_return"] for r in resumed[3:]] == ["123.5"] * 3
     assert resumed[4]["eval_return"] == "" and resumed[5]["eval_return"] != ""  # runs end on an evaluation
     # By the clock instead: an hour between evaluations gives only the last; none, every iteration.
     # No task or algorithm given: the run's own (`dva train --resume --run-dir RUN`).

@@ -135,7 +135,8 @@ def train(
         log.append(untrained_row(agent, state, curve, evaluations))
     bar = tqdm(total=budget.iterations, unit="it", dynamic_ncols=True, desc=f"{spec.algo} {spec.task}")
     try:
-        train_return = float("nan")
+        # A resumed run restores its envs mid-episode: its last logged return stands until one ends.
+        train_return = float(log.rows[-1].get("train_return") or "nan")
         while not budget.spent(state, clock):
             state, metrics, seconds = run_iteration(agent, state)
             raise_if_diverged(agent, metrics, int(state.iteration), checkpoints.manager)
