@@ -158,3 +158,18 @@ def test_a_report_of_a_users_own_folder_of_sections(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["report", "--root", str(tmp_path), "--sections", "nowhere"])
     assert "--sections nowhere is not a folder" in capsys.readouterr().err
+
+
+def test_training_episode_returns_are_read_at_an_iteration(tmp_path):
+    """``train at N it``: the training episodes' return logged at iteration N (the latest that ended
+    by then); "–" before any ended or past the run's end."""
+    curve = (
+        "iteration,env_steps,wall_time,train_return,eval_return\n"
+        "0,0,0,nan,100\n1,8,1,nan,\n2,16,2,50,\n3,24,3,,\n4,32,4,80,500\n"
+    )
+    (tmp_path / "s0.csv").write_text(curve)
+    (tmp_path / "s1.csv").write_text(curve.replace(",50,", ",60,"))
+    runs = [report.Run.load(tmp_path / name) for name in ("s0.csv", "s1.csv")]
+    cells = {n: report.run_column(f"train at {n} it")[1](runs) for n in (1, 3, 4, 6)}
+    assert cells == {1: "– / –", 3: "50 / 60", 4: "80 / 80", 6: "– / –"}
+    assert report.run_column("train at 3 it")[0] == "training episodes at iteration 3"

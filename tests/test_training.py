@@ -463,3 +463,31 @@ def test_every_evaluation_runs_sixteen_episodes_on_envs_of_its_own():
         make_env("cartpole_swingup", 4, evaluation_episodes=0)
     with pytest.raises(DvaUsageError, match="evaluation_episodes = True is not allowed; use a whole number ≥ 1"):
         make_env("cartpole_swingup", 4, evaluation_episodes=True)
+
+
+def test_sampled_evaluation_replays_the_training_action_rule(tmp_path, monkeypatch):
+    """``dva eval --sampled``: each action ``tanh(μ + σε)`` as in training, seeded; refused, naming
+    the algorithms that have the rule, for one without."""
+    from dva.algorithms import sampling_algorithms
+    from dva.runner import compiled as compiled_module
+    from dva.runner.compiled import evaluate_run
+
+    run_dir = tmp_path / "run"
+    train("cartpole_swingup", "shac", iterations=1, run_dir=run_dir, eval_every=None, **SMALL)
+    spec, agent, state = load_run(run_dir)
+    policy = agent.policy(state)
+    observation = agent.env.observe(agent.env.reset(jax.random.PRNGKey(1)))
+    mean, log_std = agent.actor.apply(policy[0], agent.actor_input(observation, policy[1]))
+    noise = jax.random.normal(jax.random.PRNGKey(2), mean.shape)
+    np.testing.assert_allclose(
+        agent.sample(policy, observation, jax.random.PRNGKey(2)), np.tanh(mean + np.exp(log_std) * noise), atol=1e-6
+    )
+    deterministic = evaluate_run(run_dir, seed=3)[1]
+    sampled, again = (evaluate_run(run_dir, seed=3, sampled=True)[1] for _ in range(2))
+    np.testing.assert_array_equal(sampled, again)  # seeded
+    assert np.abs(sampled - deterministic).max() > 1e-3  # σ = e⁻¹ moves the cart
+    assert set(sampling_algorithms()) == {"dva", "dva-privileged", "shac", "shac-pixels", "dpg-state"}
+    drqv2_run = (dataclasses.replace(spec, algo="drqv2"), None, None)
+    monkeypatch.setattr(compiled_module, "load_run", lambda *args: drqv2_run)
+    with pytest.raises(DvaUsageError, match="--sampled: drqv2 acts without a sampled action rule; the algorithms"):
+        evaluate_run(run_dir, sampled=True)

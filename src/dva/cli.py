@@ -262,8 +262,9 @@ TrainCommand.__doc__ = TrainOptions.__doc__
 
 @dataclasses.dataclass
 class EvalCommand:
-    """Replay a run's latest policy (deterministic), print the returns and optionally write a
-    video (the actor's camera view next to a larger view) and a strip of frames."""
+    """Replay a run's latest policy (deterministic, or with --sampled as in training), print the
+    returns and optionally write a video (the actor's camera view next to a larger view) and a strip
+    of frames."""
 
     run_dir: tyro.conf.Positional[Path]
     episodes: int | None = EVALUATION_EPISODES
@@ -277,6 +278,10 @@ class EvalCommand:
     """Where to write a PNG strip of the best episode's view (none: no strip)."""
     strip_frames: int = 8
     """Frames in the strip, evenly spaced over the episode."""
+    sampled: bool = False
+    """Act as in training, sampling each action from the policy (D.Va and SHAC: tanh(μ + σε)), the
+    rule behind every training-episode return and the D.Va authors' Hopper videos; default: the
+    deterministic action that training's evaluations use."""
     seed: int = 0
 
     def run(self) -> None:
@@ -284,15 +289,16 @@ class EvalCommand:
             raise DvaUsageError(f"--strip-frames {self.strip_frames} is not allowed; use a number ≥ 1")
         if self.episodes is not None and self.episodes < 1:
             raise DvaUsageError(f"--episodes {self.episodes} is not allowed; use a number ≥ 1")
-        spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed, self.episodes)
+        spec, returns, qpos, camera = evaluate_run(self.run_dir, self.seed, self.episodes, self.sampled)
         task = simulated_task(spec.task, spec.physics)
         if task is None:  # dm_control's physics: no random reference or video from here
             print(f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f}")
             return
         random = random_policy_returns(task, jax.random.PRNGKey(self.seed), len(returns))
+        rule = " (sampled actions)" if self.sampled else ""
         print(
             f"{spec.algo} on {spec.task}: return {np.mean(returns):.1f} ± {np.std(returns):.1f} "
-            f"over {len(returns)} episodes (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "
+            f"over {len(returns)} episodes{rule} (min {np.min(returns):.1f}, max {np.max(returns):.1f}); "
             f"random actions: {np.mean(random):.1f} ± {np.std(random):.1f}"
         )
         if self.video is not None:

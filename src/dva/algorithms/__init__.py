@@ -240,6 +240,12 @@ def check_algo(algo: str) -> Algorithm:
     return ALGORITHMS[algo]
 
 
+def sampling_algorithms() -> list[str]:
+    """The algorithms whose agents act in training by sampling from their policy
+    (:class:`~dva.algorithms.base.SamplingAgent`): what ``dva eval --sampled`` replays."""
+    return [name for name, entry in ALGORITHMS.items() if callable(getattr(entry.make_agent, "sample", None))]
+
+
 def make_config(task: str, algo: str, preset: str, **overrides) -> Any:
     """The configuration of ``algo`` on ``task`` under ``preset``, with ``overrides`` (None: keep)."""
     check_env_name(task)

@@ -104,6 +104,15 @@ class RecurrentAgent(Protocol):
         a memory that is sampled, as DreamerV3's latent state)."""
 
 
+@runtime_checkable
+class SamplingAgent(Protocol):
+    """An agent whose training acts by sampling from its policy (SHAC and D.Va: ``tanh(μ + σε)``):
+    its training-episode returns are this rule's, and ``dva eval --sampled`` replays it."""
+
+    def sample(self, policy: Any, observation: Observation, key: jax.Array) -> jax.Array:
+        """The training action for a batch of observations, its noise drawn from ``key``."""
+
+
 def nan_loss_reason(logged: dict[str, Any], names: tuple[str, ...]) -> str:
     """Why an update with a NaN or infinite loss stops training: every loss in ``names`` with its value."""
     losses = ", ".join(f"{name} {float(logged[name]):.3g}" for name in names)

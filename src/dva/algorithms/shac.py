@@ -518,6 +518,13 @@ class SHAC:
         actor_params, obs_stats = policy
         return jnp.tanh(self.pre_tanh_action(actor_params, self.actor_input(observation, obs_stats), None))
 
+    def sample(self, policy: tuple[dict, RunningStats], observation: Observation, key: jax.Array) -> jax.Array:
+        """The training action ``tanh(μ + σε)``, ``ε`` standard normal from ``key``."""
+        actor_params, obs_stats = policy
+        actor_input = self.actor_input(observation, obs_stats)
+        noise = jax.random.normal(key, (actor_input.shape[0], self.task.action_dim))
+        return jnp.tanh(self.pre_tanh_action(actor_params, actor_input, noise))
+
     def abort_reason(self, logged: dict) -> str:
         return (
             f"actor gradient norm {float(logged['actor_grad_norm']):.3g} is NaN or above "

@@ -95,6 +95,9 @@ class Run:
     iterations: int
     grad_norms: np.ndarray
     iteration_times: np.ndarray
+    # The training episodes' return as logged each iteration (the latest that ended), and when.
+    train_iteration: np.ndarray
+    train_return: np.ndarray
 
     @classmethod
     def load(cls, path: Path) -> Run:
@@ -106,6 +109,8 @@ class Run:
         def logged(key: str) -> np.ndarray:
             return np.array([float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")])
 
+        trained = [r for r in rows if r.get("train_return") not in (None, "", "nan")]
+
         return cls(
             path.name,
             np.array([int(float(r["iteration"])) for r in evals]),
@@ -115,6 +120,8 @@ class Run:
             int(float(rows[-1]["iteration"])),
             logged("actor_grad_norm"),
             logged("iteration_time"),
+            np.array([int(float(r["iteration"])) for r in trained]),
+            np.array([float(r["train_return"]) for r in trained]),
         )
 
     def first(self, threshold: float) -> int | None:
@@ -177,6 +184,18 @@ def at_column(axis: str, value: float) -> Callable[[list[Run]], str]:
     return cell
 
 
+def train_at_column(iteration: int) -> Callable[[list[Run]], str]:
+    """Each seed's training-episode return as logged at ``iteration`` (the episodes that ended last
+    by then, acting as training acts)."""
+
+    def cell(runs: list[Run]) -> str:
+        values = [run.train_return[run.train_iteration <= iteration] for run in runs]
+        reached = [run.iterations >= iteration for run in runs]
+        return per_seed([whole(v[-1]) if ok and len(v) else "–" for v, ok in zip(values, reached)])
+
+    return cell
+
+
 def max_grad_norm(runs: list[Run]) -> str:
     """The largest logged actor gradient norm of each run: only where every iteration was logged."""
     for run in runs:
@@ -219,7 +238,7 @@ FIXED_COLUMNS: dict[str, tuple[str, Callable[[list[Run]], str]]] = {
 def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
     """A column of a runs table from its name: one of :data:`FIXED_COLUMNS`, ``first T`` (when each
     seed's evaluations first reached T), ``at M min``, ``at Nk steps`` or ``at N it`` (the
-    evaluation then)."""
+    evaluation then), ``train at N it`` (the training episodes' return logged then)."""
     if spec in FIXED_COLUMNS:
         return FIXED_COLUMNS[spec]
     if match := re.fullmatch(r"first (-?[\d.]+)", spec):
@@ -232,7 +251,11 @@ def run_column(spec: str) -> tuple[str, Callable[[list[Run]], str]]:
         return f"eval at {match[1]}k env steps", at_column("env_steps", 1e3 * float(match[1]))
     if match := re.fullmatch(r"at (\d+) it", spec):
         return f"eval at iteration {match[1]}", at_column("iteration", float(match[1]))
-    allowed = ", ".join([*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps", "at N it"])
+    if match := re.fullmatch(r"train at (\d+) it", spec):
+        return f"training episodes at iteration {match[1]}", train_at_column(int(match[1]))
+    allowed = ", ".join(
+        [*FIXED_COLUMNS, "first T", "minutes to T", "at M min", "at Nk steps", "at N it", "train at N it"]
+    )
     raise DvaUsageError(f"unknown results column {spec!r}; allowed: {allowed}")
 
 

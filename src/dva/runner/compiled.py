@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from dva.algorithms import build_agent, check_algo
-from dva.algorithms.base import Agent, TeacherRun
+from dva.algorithms import build_agent, check_algo, sampling_algorithms
+from dva.algorithms.base import Agent, SamplingAgent, TeacherRun
 from dva.envs.factory import EVALUATION_EPISODES
 from dva.errors import DvaUsageError
 from dva.runner.checkpoint import RunSpec, checkpoint_manager, restore
@@ -49,13 +49,16 @@ def load_teacher(run_dir: str | None) -> TeacherRun:
 
 
 class Compiled(NamedTuple):
-    """An agent's jitted functions: initial state, iteration (its state donated), evaluation, and
-    evaluation that also records each step's ``qpos`` and camera frame (for ``dva eval`` and videos)."""
+    """An agent's jitted functions: initial state, iteration (its state donated), evaluation,
+    evaluation that also records each step's ``qpos`` and camera frame (for ``dva eval`` and videos),
+    and that recorded evaluation under the training action rule (``dva eval --sampled``; each
+    compiles on its first call)."""
 
     init: jax.stages.Wrapped
     iteration: jax.stages.Wrapped
     evaluate: jax.stages.Wrapped
     evaluate_recorded: jax.stages.Wrapped
+    evaluate_sampled_recorded: jax.stages.Wrapped
 
 
 @functools.lru_cache(maxsize=4)
@@ -66,6 +69,7 @@ def compiled(agent: Agent) -> Compiled:
         jax.jit(agent.iteration, donate_argnums=0),
         jax.jit(functools.partial(evaluate_agent, agent)),
         jax.jit(functools.partial(evaluate_agent, agent, record=True)),
+        jax.jit(functools.partial(evaluate_agent, agent, record=True, sampled=True)),
     )
 
 
@@ -105,16 +109,21 @@ def load_run(run_dir: Path, evaluation_episodes: int | None = EVALUATION_EPISODE
 
 
 def evaluate_run(
-    run_dir: Path, seed: int = 0, episodes: int | None = EVALUATION_EPISODES
+    run_dir: Path, seed: int = 0, episodes: int | None = EVALUATION_EPISODES, sampled: bool = False
 ) -> tuple[RunSpec, np.ndarray, np.ndarray, np.ndarray]:
-    """Replay a run's latest policy deterministically for ``episodes`` episodes, one per env of
-    an evaluation batch.
+    """Replay a run's latest policy deterministically (``sampled``: under its training action
+    rule) for ``episodes`` episodes, one per env of an evaluation batch.
 
     Returns the spec, the episode returns (N,), and per step the ``qpos`` (T, N, nq) and the
     newest camera frame the actor saw (T, N, H, W, 3; empty for state observations).
     """
     spec, agent, state = load_run(run_dir, episodes)
-    returns, qpos, camera = jax.device_get(
-        compiled(agent).evaluate_recorded(agent.policy(state), jax.random.PRNGKey(seed))
-    )
+    if sampled and not isinstance(agent, SamplingAgent):
+        raise DvaUsageError(
+            f"--sampled: {spec.algo} acts without a sampled action rule; the algorithms with one: "
+            + ", ".join(sampling_algorithms())
+        )
+    functions = compiled(agent)
+    evaluate = functions.evaluate_sampled_recorded if sampled else functions.evaluate_recorded
+    returns, qpos, camera = jax.device_get(evaluate(agent.policy(state), jax.random.PRNGKey(seed)))
     return spec, returns, qpos, camera

@@ -10,7 +10,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from dva.algorithms.base import Agent, RecurrentAgent
+from dva.algorithms.base import Agent, RecurrentAgent, SamplingAgent
 from dva.envs.observations import Env, Observation, PixelObservations
 from dva.tasks.base import Task
 
@@ -54,9 +54,15 @@ def random_policy_returns(task: Task, key: jax.Array, num_envs: int) -> jax.Arra
     return evaluate_policy(PixelObservations(task, num_envs), uniform, key)
 
 
-def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False):
+def evaluate_agent(agent: Agent, policy, key: jax.Array, record: bool = False, sampled: bool = False):
     """:func:`~dva.runner.evaluation.evaluate_policy` with the agent's deterministic policy (its memory
-    carried from step to step where it is a :class:`~dva.algorithms.base.RecurrentAgent`)."""
+    carried from step to step where it is a :class:`~dva.algorithms.base.RecurrentAgent`), or with
+    ``sampled`` its training action rule (a :class:`~dva.algorithms.base.SamplingAgent`)."""
+    if sampled:
+        assert isinstance(agent, SamplingAgent), f"{type(agent).__name__} has no sampled action rule"
+        return evaluate_policy(
+            agent.env, lambda observation, memory, key: (agent.sample(policy, observation, key), memory), key, record
+        )
     if isinstance(agent, RecurrentAgent):
         return evaluate_policy(
             agent.env,
