@@ -280,7 +280,7 @@ class EvalCommand:
     """Frames in the strip, evenly spaced over the episode."""
     sampled: bool = False
     """Act as in training, sampling each action from the policy (D.Va and SHAC: tanh(μ + σε)), the
-    rule behind every training-episode return and the D.Va authors' Hopper videos; default: the
+    rule behind every training-episode return and the D.Va authors' curves and videos; default: the
     deterministic action that training's evaluations use."""
     seed: int = 0
 
