@@ -206,7 +206,7 @@ def test_train_eval_plot_end_to_end_from_pixels(tmp_path, capsys):
 
 
 def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
-    from dva.analysis.plots import mean_and_std, plot_runs
+    from dva.analysis.plots import mean_and_std, past_shortest, plot_runs
 
     a = {"env_steps": np.array([0.0, 10.0, 20.0]), "eval_return": np.array([0.0, 10.0, 20.0])}
     b = {"env_steps": np.array([0.0, 5.0, 15.0]), "eval_return": np.array([0.0, 15.0, 45.0])}
@@ -214,6 +214,11 @@ def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
     assert x[0] == 0.0 and x[-1] == 15.0  # up to the shortest run
     np.testing.assert_allclose(mean[-1], (15.0 + 45.0) / 2)
     np.testing.assert_allclose(std[-1], 15.0)
+    # the longer seed goes on alone past 15, from its last point at or before it
+    ((seed_x, seed_y),) = past_shortest([a, b], "env_steps", "eval_return")
+    np.testing.assert_array_equal(seed_x, [10.0, 20.0])
+    np.testing.assert_array_equal(seed_y, [10.0, 20.0])
+    assert past_shortest([a, a], "env_steps", "eval_return") == []
     with pytest.raises(ValueError, match="metric 'loss' is not allowed"):
         plot_runs([tmp_path], tmp_path, "loss")
     with pytest.raises(ValueError, match="has no progress.csv"):

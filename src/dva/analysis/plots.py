@@ -52,6 +52,18 @@ def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
     return grid, values.mean(0), values.std(0)
 
 
+def past_shortest(curves: list[dict[str, np.ndarray]], x_key: str, metric: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (x, y) of each seed that ran past the shortest run's end, from its last point at or
+    before that end (so that it joins the mean there)."""
+    end = min(c[x_key][-1] for c in curves if len(c[x_key]) > 0)
+    parts = []
+    for c in curves:
+        start = max(int(np.searchsorted(c[x_key], end, side="right")) - 1, 0)
+        if c[x_key][-1] > end:
+            parts.append((c[x_key][start:], c[metric][start:]))
+    return parts
+
+
 def grouped_curves(
     run_dirs: list[Path], metric: str, labels: dict[Path, str] | None = None
 ) -> dict[str, list[dict[str, np.ndarray]]]:
@@ -202,8 +214,8 @@ def plot_curves(
     published: PublishedCurve | None = None,
 ) -> list[Path]:
     """Plot each group of curves (the seeds of a setting) as its mean ± std against env steps and
-    against wall-clock, one PNG each, ``published`` beside them against env steps; returns their
-    paths."""
+    against wall-clock (a seed that ran past the shortest one continues as a thin line), one PNG
+    each, ``published`` beside them against env steps; returns their paths."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for x_key, x_label in AXES.items():
@@ -214,6 +226,9 @@ def plot_curves(
             (line,) = ax.plot(x, mean, label=f"{label}, {len(curves)} seed{'s' * (len(curves) > 1)}")
             if len(curves) > 1:
                 ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.25)
+                # A seed that ran longer than the others goes on alone, thin, past their mean.
+                for seed_x, seed_y in past_shortest(curves, x_key, metric):
+                    ax.plot(seed_x, seed_y, color=line.get_color(), linewidth=0.8, alpha=0.7)
         if published is not None and x_key == "env_steps":
             x, values = published.env_steps, published.values
             (line,) = ax.plot(x, np.median(values, axis=1), "--", color="0.3", label=published.label)
