@@ -215,10 +215,10 @@ def test_plot_averages_seeds_and_rejects_bad_input(tmp_path):
     np.testing.assert_allclose(mean[-1], (15.0 + 45.0) / 2)
     np.testing.assert_allclose(std[-1], 15.0)
     # the longer seed goes on alone past 15, from its last point at or before it
-    ((seed_x, seed_y),) = past_shortest([a, b], "env_steps", "eval_return")
+    ((seed_x, seed_y),) = past_shortest([a, b], "env_steps", "eval_return", x[-1])
     np.testing.assert_array_equal(seed_x, [10.0, 20.0])
     np.testing.assert_array_equal(seed_y, [10.0, 20.0])
-    assert past_shortest([a, a], "env_steps", "eval_return") == []
+    assert past_shortest([a, a], "env_steps", "eval_return", 20.0) == []
     with pytest.raises(ValueError, match="metric 'loss' is not allowed"):
         plot_runs([tmp_path], tmp_path, "loss")
     with pytest.raises(ValueError, match="has no progress.csv"):

@@ -52,10 +52,11 @@ def mean_and_std(curves: list[dict[str, np.ndarray]], x_key: str, metric: str):
     return grid, values.mean(0), values.std(0)
 
 
-def past_shortest(curves: list[dict[str, np.ndarray]], x_key: str, metric: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The (x, y) of each seed that ran past the shortest run's end, from its last point at or
-    before that end (so that it joins the mean there)."""
-    end = min(c[x_key][-1] for c in curves if len(c[x_key]) > 0)
+def past_shortest(
+    curves: list[dict[str, np.ndarray]], x_key: str, metric: str, end: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (x, y) of each seed that ran past ``end`` (where :func:`mean_and_std`'s grid stops), from
+    its last point at or before it (so that it joins the mean there)."""
     parts = []
     for c in curves:
         start = max(int(np.searchsorted(c[x_key], end, side="right")) - 1, 0)
@@ -227,7 +228,7 @@ def plot_curves(
             if len(curves) > 1:
                 ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.25)
                 # A seed that ran longer than the others goes on alone, thin, past their mean.
-                for seed_x, seed_y in past_shortest(curves, x_key, metric):
+                for seed_x, seed_y in past_shortest(curves, x_key, metric, x[-1]):
                     ax.plot(seed_x, seed_y, color=line.get_color(), linewidth=0.8, alpha=0.7)
         if published is not None and x_key == "env_steps":
             x, values = published.env_steps, published.values
