@@ -19,11 +19,14 @@ import dva.analysis.compare as compare_module
 from dva.algorithms import make_config
 from dva.analysis.compare import Job, cpu_groups, figure_settings, grid_settings, launch_pinned, run_parallel
 from dva.cli import main
+from dva.runner.logs import read_progress
 
 
 class FakeTraining:
     """Stands in for ``train`` and ``checkpoint_manager`` in ``dva.analysis.compare``: logs one evaluation per
-    simulated minute and leaves a checkpoint marker."""
+    simulated minute and leaves a checkpoint marker (the iteration it saved)."""
+
+    HEADER = "iteration,env_steps,wall_time,eval_return,train_return"
 
     def __init__(self) -> None:
         self.calls: list[dict] = []
@@ -37,23 +40,27 @@ class FakeTraining:
             (run_dir / "run.json").write_text(
                 json.dumps({"task": task, "algo": algo, "preset": preset, "seed": seed, "config": config})
             )
-            (run_dir / "progress.csv").write_text("env_steps,wall_time,eval_return,train_return\n0,0,0,nan\n")
+            (run_dir / "progress.csv").write_text(f"{self.HEADER}\n0,0,0,0,nan\n")
         with (run_dir / "progress.csv").open() as f:
             rows = list(csv.DictReader(f))
-        start = float(rows[-1]["wall_time"])
+        if resume:  # as train() does: the rows logged after the checkpoint are dropped
+            rows = [row for row in rows if int(row["iteration"]) <= int((run_dir / "checkpoint").read_text())]
+        start, iteration = float(rows[-1]["wall_time"]), int(rows[-1]["iteration"])
         bonus = 100.0 if overrides.get("use_critic", True) else 10.0
-        with (run_dir / "progress.csv").open("a") as f:
-            for minute in range(1, round(minutes) + 1):
-                seconds = start + 60 * minute
-                f.write(f"{int(seconds * 10)},{seconds},{bonus * seconds / 60},nan\n")
-        (run_dir / "checkpoint").write_text("")
+        lines = [",".join(row.values()) for row in rows]
+        for minute in range(1, round(minutes) + 1):  # one iteration per simulated minute
+            seconds = start + 60 * minute
+            lines.append(f"{iteration + minute},{int(seconds * 10)},{seconds},{bonus * seconds / 60},nan")
+        (run_dir / "progress.csv").write_text("\n".join([self.HEADER, *lines]) + "\n")
+        (run_dir / "checkpoint").write_text(str(iteration + round(minutes)))
         return run_dir
 
     def checkpoint_manager(self, run_dir):
         class Manager:
             @staticmethod
             def latest_step():
-                return 1 if (run_dir / "checkpoint").exists() else None
+                marker = run_dir / "checkpoint"
+                return int(marker.read_text()) if marker.exists() else None
 
         return Manager()
 
@@ -188,6 +195,17 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     main([*args, "--minutes", "3"])
     assert len(fake.calls) == 5 and json.loads(done.read_text())["minutes"] == 3.0
     assert "had its minutes" in capsys.readouterr().out
+    # a run killed two minutes after its last checkpoint (at 3 min): a resume drops those two
+    # minutes' rows, so it trains them again — 2 more minutes for a 5-minute budget, not 0
+    run_dir = out / "runs" / "cartpole_swingup_dva_s0"
+    with (run_dir / "progress.csv").open("a") as f:
+        f.write("4,2400,240.0,400.0,nan\n5,3000,300.0,500.0,nan\n")
+    main([*args, "--minutes", "5"])
+    assert [(c["run_dir"].name, c["minutes"], c["resume"]) for c in fake.calls[5:]] == [
+        ("cartpole_swingup_dva_s0", 2.0, True),
+        ("cartpole_swingup_dva_without_critic_s0", 2.0, True),
+    ]
+    assert read_progress(run_dir)[-1]["wall_time"] == "300.0"  # 5 minutes logged, as budgeted
 
 
 def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkeypatch):

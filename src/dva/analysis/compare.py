@@ -138,6 +138,14 @@ def saved_iteration(run_dir: Path) -> int | None:
     return checkpoint_manager(run_dir).latest_step() if (run_dir / "run.json").exists() else None
 
 
+def minutes_trained(run_dir: Path, iteration: int) -> float:
+    """The wall-clock minutes a run resumed from its checkpoint at ``iteration`` has had: that
+    iteration's logged ``wall_time``, not the last row's (a resume drops the rows logged after the
+    checkpoint, so their minutes are trained again)."""
+    kept = [row for row in read_progress(run_dir) if int(row["iteration"]) <= iteration]
+    return float(kept[-1]["wall_time"]) / 60 if kept else 0.0
+
+
 def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path) -> str:
     """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
 
@@ -146,9 +154,9 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
     if is_complete(run_dir, minutes):
         return "skipped (complete)"
     how: dict[str, Any] | None  # train()'s arguments, or None: nothing to train
-    if saved_iteration(run_dir) is not None:
-        logged = read_progress(run_dir)  # the minutes it has, wall_time of its last row
-        left = minutes - float(logged[-1]["wall_time"]) / 60 if logged else minutes
+    saved = saved_iteration(run_dir)
+    if saved is not None:
+        left = minutes - minutes_trained(run_dir, saved)
         # a run cut short after its budget was spent (before its completion mark) needs no training
         action, how = ("resumed", dict(resume=True, minutes=left)) if left > 0 else ("had its minutes", None)
     else:
