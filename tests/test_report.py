@@ -71,6 +71,30 @@ def test_a_section_is_stale_exactly_when_its_sources_changed(tmp_path):
     assert "**Stale**" in report.generate(root, "docs/results.md")
 
 
+def test_a_setting_measured_apart_is_stale_on_its_own(tmp_path):
+    root = make_root(tmp_path)  # the section's fingerprint "" is stale
+    toml = root.folder / "toy" / "section.toml"
+    toml.write_text(
+        toml.read_text().replace('"D.Va" = ["s0.csv", "s1.csv"]', '"D.Va" = ["s0.csv", "s1.csv"]\n"DrQ" = ["s1.csv"]')
+        + '\n[settings."D.Va"]\ncommit = "89abcde"\nconfigs = []\nfingerprint = ""\n'
+    )
+    with pytest.raises(report.DvaUsageError, match=r'a table \[settings."DrQ"\]'):
+        report.stamp(root, "toy", "89abcde", "DrQ")
+    report.stamp(root, "toy", "89abcde", "D.Va")  # D.Va re-measured: only DrQ's row is stale
+    text = report.generate(root, "docs/results.md")
+    assert "**Stale rows** (†)" in text and "**Stale**:" not in text
+    assert "code `0123abc`; D.Va: `89abcde`" in text
+    assert "| D.Va | 100 / 100 |" in text and "| DrQ† | 100 |" in text
+    assert "| toy | final 400 ± 141, 2× at 1.0 / 1.0 min |" in text  # its placeholders unmarked
+    assert 'commit = "0123abc"' in toml.read_text()  # the section's own stamp untouched
+    report.stamp(root, "toy", "4567def")  # the rest re-measured: nothing stale
+    text = report.generate(root, "docs/results.md")
+    assert "Stale" not in text and "†" not in text and "code `4567def`; D.Va: `89abcde`" in text
+    (root.root / "src" / "task.py").write_text("reward = 2\n")  # the code both measure changed
+    text = report.generate(root, "docs/results.md")
+    assert "**Stale**:" in text and "| toy | final 400 ± 141†" in text
+
+
 def test_write_then_check_agree(tmp_path):
     root = make_root(tmp_path)
     assert report.differences(root) != ""

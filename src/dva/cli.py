@@ -352,6 +352,8 @@ class ReportCommand:
     """A section just measured: record the hash of the code and configs it measures, and --commit."""
     commit: str | None = None
     """With --stamp: the commit of the code that made the data."""
+    setting: str | None = None
+    """With --stamp: only this setting was measured (its section.toml table [settings."NAME"])."""
     root: Path = Path(".")
     """The folder the sections, documents and sections' sources are relative to."""
     sections: Path = report.RESULTS
@@ -369,7 +371,7 @@ class ReportCommand:
         if self.stamp is not None:
             if self.commit is None:
                 raise DvaUsageError("--stamp needs --commit: the commit of the code that made the data")
-            report.stamp(layout, self.stamp, self.commit)
+            report.stamp(layout, self.stamp, self.commit, self.setting)
         if self.check:
             diff = report.differences(layout)
             print(diff or "the documents agree with their data")

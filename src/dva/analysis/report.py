@@ -26,11 +26,17 @@ made and what to show::
     csv = "throughput.csv"
     columns = [["task", "task"], ["forward (s)", "forward_s:.3f"]]
 
+    [settings."D.Va"]                       # a setting measured apart from the rest (optional):
+    commit = "4567def"                      # its own code, configs and fingerprint
+    configs = [["hopper", "dva", "cpu"]]    # (`dva report --stamp NAME --setting "D.Va"`)
+    fingerprint = "…"
+
 The documents mark each place with HTML comments, ``<!-- generated: NAME -->`` …
 ``<!-- end -->`` (NAME a section folder, or a key of ``summary.toml``), which the generator fills. Summary rows
 (``docs/results/summary.toml``) are text with ``{{section|setting|column}}`` and
 ``{{section/file.csv|key=value|field:format}}`` placeholders. When the hash of a section's sources
-and configs no longer matches its fingerprint, the section is marked stale.
+and configs no longer matches its fingerprint, the section is marked stale; a setting stamped apart
+is judged by its own, so a section re-measured one setting at a time marks only the rows still stale.
 """
 
 from __future__ import annotations
@@ -304,19 +310,36 @@ class Section:
             raise DvaUsageError(f"section {self.name}: no setting {setting!r}; it has: {', '.join(settings)}")
         return [Run.load(self.folder / file) for file in settings[setting]]
 
-    def fingerprint(self, layout: Layout) -> str:
-        """The hash of the code and configs the section measures, as they are now."""
+    def stamp_of(self, setting: str | None = None) -> dict:
+        """What says how ``setting`` was measured: its own ``[settings.…]`` table where it was
+        measured apart from the rest, else the section's (commit, configs, fingerprint)."""
+        return self.meta.get("settings", {}).get(setting, self.meta)
+
+    def fingerprint(self, layout: Layout, setting: str | None = None) -> str:
+        """The hash of the code and configs the section (or ``setting``) measures, as they are now."""
         digest = hashlib.sha256()
         for source in sorted(self.meta.get("sources", [])):
             digest.update(source.encode() + (layout.root / source).read_bytes())
-        for task, algo, preset in self.meta.get("configs", []):
+        for task, algo, preset in self.stamp_of(setting).get("configs", []):
             digest.update(_config_json(task, algo, preset))
         return digest.hexdigest()[:16]
 
-    def is_stale(self, layout: Layout) -> bool:
-        return self.meta.get("fingerprint") != self.fingerprint(layout)
+    def is_stale(self, layout: Layout, setting: str | None = None) -> bool:
+        return self.stamp_of(setting).get("fingerprint") != self.fingerprint(layout, setting)
 
-    def tables(self) -> list[str]:
+    def stale_rows(self, layout: Layout) -> set[str]:
+        """The stale settings where only some are (settings stamped apart), else none: then the
+        section as a whole is stale or not."""
+        settings = list(self.meta.get("runs", {})) if "settings" in self.meta else []
+        stale = {setting for setting in settings if self.is_stale(layout, setting)}
+        return stale if len(stale) < len(settings) else set()
+
+    def is_all_stale(self, layout: Layout) -> bool:
+        if "settings" in self.meta and self.meta.get("runs"):
+            return all(self.is_stale(layout, setting) for setting in self.meta["runs"])
+        return self.is_stale(layout)
+
+    def tables(self, layout: Layout) -> list[str]:
         tables = []
         for table in self.meta.get("tables", []):
             if "csv" in table:
@@ -327,24 +350,36 @@ class Section:
                 continue
             columns = [run_column(spec) for spec in table["columns"]]
             settings = table.get("settings", list(self.meta.get("runs", {})))
-            rows = [[setting] + [cell(self.runs(setting)) for _, cell in columns] for setting in settings]
+            marked = self.stale_rows(layout)  # where only some settings are stale, their rows carry the mark
+            rows = [
+                [setting + STALE_MARK * (setting in marked)] + [cell(self.runs(setting)) for _, cell in columns]
+                for setting in settings
+            ]
             tables.append(markdown_table([table.get("first", "setting")] + [h for h, _ in columns], rows) + "\n")
         return tables
 
     def block(self, layout: Layout) -> str:
         """The generated part of the section: how it was made, stale or not, and its tables."""
         meta = self.meta
-        code = f"`{meta['commit']}`" if re.fullmatch(r"[0-9a-f]{7,40}", meta["commit"]) else meta["commit"]
+        apart = meta.get("settings", {})
+        code = "; ".join(
+            [commit_text(meta["commit"])] + [f"{name}: {commit_text(stamp['commit'])}" for name, stamp in apart.items()]
+        )
         lines = [
             f"Command: `{meta['command']}`  ",
             f"Machine: {meta['machine']}; code {code}; data in `{self.shown.as_posix()}/`.",
         ]
-        if self.is_stale(layout):
+        if self.stale_rows(layout):
+            lines.append(
+                f"\n**Stale rows** ({STALE_MARK}): the code or configuration they measure has changed since "
+                "they were measured; re-run them to bring them up to date."
+            )
+        elif self.is_all_stale(layout):
             lines.append(
                 "\n**Stale**: the code or configuration this measures has changed since it was "
                 "measured; re-run the command to bring it up to date."
             )
-        return "\n".join(lines) + "\n" + "".join("\n" + table for table in self.tables())
+        return "\n".join(lines) + "\n" + "".join("\n" + table for table in self.tables(layout))
 
     def plot(self) -> list[Path]:
         curves = {
@@ -369,6 +404,11 @@ class Section:
         )
 
 
+def commit_text(commit: str) -> str:
+    """A commit hash in code style; free text (several commits explained) as it is."""
+    return f"`{commit}`" if re.fullmatch(r"[0-9a-f]{7,40}", commit) else commit
+
+
 @functools.cache
 def _config_json(task: str, algo: str, preset: str) -> bytes:
     """A config as the fingerprint hashes it (the presets are constants of the code)."""
@@ -389,7 +429,7 @@ def placeholder(layout: Layout, text: str) -> str:
         section = Section.load(layout, where.split("/")[0])
         return csv_field(rows[0], what) + STALE_MARK * section.is_stale(layout)
     section = Section.load(layout, where)
-    return run_column(what)[1](section.runs(pick)) + STALE_MARK * section.is_stale(layout)
+    return run_column(what)[1](section.runs(pick)) + STALE_MARK * section.is_stale(layout, pick)
 
 
 def fill(layout: Layout, text: str) -> str:
@@ -447,13 +487,26 @@ def write(layout: Layout, plots: bool = False) -> list[Path]:
     return written
 
 
-def stamp(layout: Layout, name: str, commit: str) -> None:
-    """Record that section ``name``'s data was just measured with the code at ``commit``."""
+def stamp(layout: Layout, name: str, commit: str, setting: str | None = None) -> None:
+    """Record that section ``name``'s data (or only ``setting``'s, in its ``[settings."…"]`` table)
+    was just measured with the code at ``commit``."""
     section = Section.load(layout, name)
     path = section.folder / "section.toml"
     text = path.read_text()
-    for key, value in (("commit", commit), ("fingerprint", section.fingerprint(layout))):
-        text, count = re.subn(rf'(?m)^{key} = ".*"$', f'{key} = "{value}"', text)
+    # the part of the file that holds the stamp: before its first table, or the setting's own table
+    start = 0
+    if setting is not None:
+        header = re.search(rf"(?m)^\[settings\.{re.escape(json.dumps(setting))}\]$", text)
+        if header is None or setting not in section.meta.get("runs", {}):
+            raise DvaUsageError(
+                f"{path.relative_to(layout.root)} needs a table [settings.{json.dumps(setting)}] with "
+                "commit, configs and fingerprint, for a setting of its [runs]"
+            )
+        start = header.end()
+    end = next((start + m.start() for m in re.finditer(r"(?m)^\[", text[start:])), len(text))
+    part = text[start:end]
+    for key, value in (("commit", commit), ("fingerprint", section.fingerprint(layout, setting))):
+        part, count = re.subn(rf'(?m)^{key} = ".*"$', f'{key} = "{value}"', part)
         if count != 1:
-            raise DvaUsageError(f"{path.relative_to(layout.root)} needs one line '{key} = \"…\"'")
-    path.write_text(text)
+            raise DvaUsageError(f"{path.relative_to(layout.root)} needs one line '{key} = \"…\"' there")
+    path.write_text(text[:start] + part + text[end:])
