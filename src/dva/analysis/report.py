@@ -327,19 +327,17 @@ class Section:
     def is_stale(self, layout: Layout, setting: str | None = None) -> bool:
         return self.stamp_of(setting).get("fingerprint") != self.fingerprint(layout, setting)
 
-    def stale_rows(self, layout: Layout) -> set[str]:
-        """The stale settings where only some are (settings stamped apart), else none: then the
-        section as a whole is stale or not."""
-        settings = list(self.meta.get("runs", {})) if "settings" in self.meta else []
+    def staleness(self, layout: Layout) -> tuple[bool, set[str]]:
+        """Whether the whole section is stale, and else which of its settings are (where some were
+        stamped apart: each judged by its own stamp, the rest by the section's)."""
+        settings = set(self.meta.get("runs", {}))
+        if "settings" not in self.meta or not settings:
+            return self.is_stale(layout), set()
         stale = {setting for setting in settings if self.is_stale(layout, setting)}
-        return stale if len(stale) < len(settings) else set()
+        return (True, set()) if stale == settings else (False, stale)
 
-    def is_all_stale(self, layout: Layout) -> bool:
-        if "settings" in self.meta and self.meta.get("runs"):
-            return all(self.is_stale(layout, setting) for setting in self.meta["runs"])
-        return self.is_stale(layout)
-
-    def tables(self, layout: Layout) -> list[str]:
+    def tables(self, stale_rows: set[str]) -> list[str]:
+        """The section's tables, the rows of ``stale_rows`` marked."""
         tables = []
         for table in self.meta.get("tables", []):
             if "csv" in table:
@@ -350,9 +348,8 @@ class Section:
                 continue
             columns = [run_column(spec) for spec in table["columns"]]
             settings = table.get("settings", list(self.meta.get("runs", {})))
-            marked = self.stale_rows(layout)  # where only some settings are stale, their rows carry the mark
             rows = [
-                [setting + STALE_MARK * (setting in marked)] + [cell(self.runs(setting)) for _, cell in columns]
+                [setting + STALE_MARK * (setting in stale_rows)] + [cell(self.runs(setting)) for _, cell in columns]
                 for setting in settings
             ]
             tables.append(markdown_table([table.get("first", "setting")] + [h for h, _ in columns], rows) + "\n")
@@ -369,17 +366,18 @@ class Section:
             f"Command: `{meta['command']}`  ",
             f"Machine: {meta['machine']}; code {code}; data in `{self.shown.as_posix()}/`.",
         ]
-        if self.stale_rows(layout):
+        all_stale, stale_rows = self.staleness(layout)
+        if stale_rows:
             lines.append(
                 f"\n**Stale rows** ({STALE_MARK}): the code or configuration they measure has changed since "
                 "they were measured; re-run them to bring them up to date."
             )
-        elif self.is_all_stale(layout):
+        elif all_stale:
             lines.append(
                 "\n**Stale**: the code or configuration this measures has changed since it was "
                 "measured; re-run the command to bring it up to date."
             )
-        return "\n".join(lines) + "\n" + "".join("\n" + table for table in self.tables(layout))
+        return "\n".join(lines) + "\n" + "".join("\n" + table for table in self.tables(stale_rows))
 
     def plot(self) -> list[Path]:
         curves = {
