@@ -23,10 +23,9 @@ def selects_slow_tests(argv: list[str]) -> bool:
 if not selects_slow_tests(sys.argv) and "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
 
-import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402
 
-import dva  # noqa: E402
+import dva  # noqa: E402  (imports JAX: after XLA_FLAGS)
 
 dva.configure()  # what the command line sets up: the encoder's CPU convolutions, compile caches
 
@@ -38,8 +37,3 @@ ALL_TASKS = list(BUILTIN_TASKS)
 @pytest.fixture(params=ALL_TASKS)
 def task(request: pytest.FixtureRequest):
     return make_task(request.param)
-
-
-def unbatch(tree):
-    """First environment of a batched pytree."""
-    return jax.tree.map(lambda x: x[0], tree)
