@@ -255,14 +255,17 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
     # Sample stds (ddof 1): finals 2000 and 2200 → 100·√2; late medians 2000 and 900 → 550·√2.
     assert float(dva["final_mean"]) == 2100.0 and float(dva["final_std"]) == pytest.approx(100.0 * 2**0.5)
     assert float(dva["late_mean"]) == 1450.0 and float(dva["late_std"]) == pytest.approx(550.0 * 2**0.5)
+    # Two seeds resampled 10,000 times: a quarter of the means are each seed's alone (900, 2000).
+    assert (float(dva["late_low"]), float(dva["late_high"])) == (900.0, 2000.0)
     assert float(dva["best_mean"]) == 2350.0 and dva["reached"] == "2"
     assert float(dva["minutes_to_threshold"]) == 2.5  # median of 1 and 4 minutes
     assert float(dva["env_steps_to_threshold"]) == 2000.0
     assert curl["reached"] == "0" and curl["minutes_to_threshold"] == "nan"
     assert (
-        "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | 300 | 10.0 | 500 "
+        "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | [175, 175] | 300 | 10.0 | 500 "
         "| 2092 | 0 / 1 | nan | nan |" in markdown
     )
+    assert markdown.endswith("Highest median of the last 3 (mean over seeds): dva on cartpole_balance (cpu preset)\n")
     assert (tmp_path / "out" / "summary.md").read_text() == markdown
 
 

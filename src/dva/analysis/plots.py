@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
-from dva.analysis.statistics import sample_std
+from dva.analysis.statistics import bootstrap_interval, sample_std
 from dva.errors import DvaUsageError
 
 METRICS = ("eval_return", "train_return")
@@ -96,7 +96,8 @@ def summarize_runs(
     labels: dict[Path, str] | None = None,
 ) -> list[dict]:
     """One row per setting: seeds, final, late (each run's median over its last
-    :data:`LATE_POINTS` logged values) and best ``metric`` (mean ± sample std over seeds), run length, and
+    :data:`LATE_POINTS` logged values; mean ± sample std over seeds, and the mean's
+    percentile-bootstrap 95 % interval) and best ``metric``, run length, and
     with a threshold how many seeds reached it and the median wall-clock and env steps they took
     (NaN when none did). ``threshold`` is one value for every setting or one per setting's label
     (a label it maps to None, or lacks, is not timed)."""
@@ -113,6 +114,7 @@ def summarize_runs(
             "final_std": sample_std(final),
             "late_mean": late.mean(),
             "late_std": sample_std(late),
+            **dict(zip(("late_low", "late_high"), bootstrap_interval(late))),
             "best_mean": best.mean(),
             "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
             "env_steps": np.mean([c["env_steps"][-1] for c in curves]),
@@ -130,13 +132,15 @@ def summarize_runs(
 
 
 def summary_markdown(rows: list[dict], metric: str) -> str:
-    """:func:`summarize_runs`'s rows as a markdown table (the threshold columns where a row has one)."""
+    """:func:`summarize_runs`'s rows as a markdown table (the threshold columns where a row has one),
+    and with several settings the one whose seeds' late medians have the highest mean."""
     timed = any("threshold" in row for row in rows)
     header = [
         "setting",
         "seeds",
         f"final {metric}",
         f"median of the last {LATE_POINTS}",
+        "its 95 % interval (bootstrap over seeds)",
         f"best {metric}",
         "minutes",
         "env steps",
@@ -150,6 +154,7 @@ def summary_markdown(rows: list[dict], metric: str) -> str:
             str(row["seeds"]),
             f"{row['final_mean']:.0f} ± {row['final_std']:.0f}",
             f"{row['late_mean']:.0f} ± {row['late_std']:.0f}",
+            f"[{row['late_low']:.0f}, {row['late_high']:.0f}]",
             f"{row['best_mean']:.0f}",
             f"{row['minutes']:.1f}",
             f"{row['env_steps']:.0f}",
@@ -164,6 +169,9 @@ def summary_markdown(rows: list[dict], metric: str) -> str:
         elif timed:
             cells += ["–"] * 4
         lines.append("| " + " | ".join(cells) + " |")
+    if len(rows) > 1:
+        best = max(rows, key=lambda row: row["late_mean"])
+        lines += ["", f"Highest median of the last {LATE_POINTS} (mean over seeds): {best['setting']}"]
     return "\n".join(lines) + "\n"
 
 
