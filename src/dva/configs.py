@@ -118,7 +118,8 @@ DRQV2_PAPER: dict[str, dict] = {
 }
 # The CPU preset keeps the method (augmentation, clipped double Q, n-step returns, action repeat,
 # the std schedule) at a size one core updates several times a second: 48² images, batch 64, 8
-# updates per round (one per 4 env steps; DrQ-v2's is one per 2), 256-wide MLPs, a 100k-step replay
+# updates per round of the 16 envs (one per 2 agent steps, DrQ-v2's own rate; at action repeat 2
+# one per 4 env steps), 256-wide MLPs, a 100k-step replay
 # (690 MB of 48² frames) and the exploration std decaying over the env steps a short CPU run takes
 # (docs/results.md#drq-v2-and-curl-on-cart-pole-balance).
 DRQV2_CPU = dict(
