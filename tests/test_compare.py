@@ -208,6 +208,18 @@ def test_compare_trains_skips_and_resumes(fake, tmp_path, capsys):
     assert read_progress(run_dir)[-1]["wall_time"] == "300.0"  # 5 minutes logged, as budgeted
 
 
+def test_compare_evaluates_at_the_interval_asked_for(fake, tmp_path, capsys):
+    args = ["compare", "ablation-value", "--seeds", "0", "--out", str(tmp_path), "--minutes", "2"]
+    main([*args, "--eval-minutes", "3"])  # a method whose evaluation costs minutes
+    assert [(c["eval_every"], c["eval_minutes"]) for c in fake.calls] == [(None, 3.0), (None, 3.0)]
+    job = Job(figure_settings("fig4", ["hopper"])[0], 0, 2.0, "cpu", "out/runs/x_s0", eval_minutes=3.0)
+    assert Job.from_json(job.to_json()) == job  # what a child process or a Ray task receives
+    with pytest.raises(SystemExit):
+        main(["sweep", "--algo", "dva", "--grid", "horizon=8", "--out", str(tmp_path), "--eval-minutes", "0"])
+    assert "--eval-minutes 0.0 is not allowed; use a number of minutes > 0" in capsys.readouterr().err
+    assert len(fake.calls) == 2  # nothing trained
+
+
 def test_compare_times_each_task_to_its_own_target_return(fake, tmp_path, monkeypatch):
     from dva.tasks import TARGET_RETURNS
 

@@ -17,7 +17,7 @@ import tyro
 from dva.algorithms import ALGORITHMS, AlgoName
 from dva.analysis import report
 from dva.analysis.commands import ANALYSES
-from dva.analysis.compare import Backend, FigureName, figure_settings, grid_settings, run_settings
+from dva.analysis.compare import EVAL_MINUTES, Backend, FigureName, figure_settings, grid_settings, run_settings
 from dva.analysis.plots import plot_runs, write_summary
 from dva.configs import PresetName
 from dva.envs.factory import EVALUATION_EPISODES, check_env_name, simulated_task
@@ -391,6 +391,9 @@ class ManyRuns:
     threshold: float | None = None
     """Report when each setting first reached this eval return (default: its task's target
     return, as `dva tasks` lists them)."""
+    eval_minutes: float = EVAL_MINUTES
+    """Evaluate every run after this many minutes of its own clock (the median of the last 10 then
+    spans 10 of them); more for a method whose evaluation takes minutes (TD-MPC2 plans every step)."""
     out: Path = Path("comparisons")
     workers: int = 1
     """local backend: runs at once, each in its own process pinned to an equal share of the CPUs
@@ -405,8 +408,8 @@ class ManyRuns:
     """ray backend: the GPUs Ray reserves for each run (fractions share one)."""
 
     def run_options(self) -> dict:
-        fields = ("seeds", "minutes", "preset", "threshold", "workers", "backend", "cpus_per_run", "gpus_per_run")
-        return {name: getattr(self, name) for name in fields}
+        """The options :func:`~dva.analysis.compare.run_settings` takes: all of these but ``out``."""
+        return {field.name: getattr(self, field.name) for field in dataclasses.fields(ManyRuns) if field.name != "out"}
 
 
 @dataclasses.dataclass(kw_only=True)

@@ -48,8 +48,9 @@ FigureName = Literal["fig4", "fig6", "fig7", "fig13", "ablation-value", "ablatio
 FIGURES: tuple[str, ...] = typing.get_args(FigureName)
 FRAME_STACKS: tuple[int, ...] = (1, 2, 3, 4, 5, 6)  # ablation-frames' settings, as the paper's
 COMPLETE = "complete.json"  # written into a run directory when its budget is spent
-# Every run is evaluated once per minute of its own clock, whatever its iteration time (D.Va ≈ 1 s,
-# DAgger's student ≈ 12 s on the CPU preset), so times to a threshold have the same resolution.
+# Every run is evaluated once per minute of its own clock by default, whatever its iteration time
+# (D.Va ≈ 1 s, DAgger's student ≈ 12 s on the CPU preset), so times to a threshold have the same
+# resolution; a slower interval is for methods whose evaluation costs minutes (TD-MPC2 plans each step).
 EVAL_MINUTES = 1.0
 # The algorithms each figure compares by default (the paper's), and those ``algos`` may add: the
 # privileged variants, which learn from the simulator's state beside the pixels.
@@ -146,8 +147,11 @@ def minutes_trained(run_dir: Path, iteration: int) -> float:
     return float(kept[-1]["wall_time"]) / 60 if kept else 0.0
 
 
-def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path) -> str:
-    """Train, resume or skip one run so that it has had ``minutes``; returns what it did."""
+def run_setting(
+    setting: Setting, seed: int, minutes: float, preset: str, run_dir: Path, eval_minutes: float = EVAL_MINUTES
+) -> str:
+    """Train, resume or skip one run so that it has had ``minutes``, evaluated every ``eval_minutes``
+    of its clock; returns what it did."""
 
     if (run_dir / "run.json").exists():
         check_same_setting(setting, preset, run_dir)
@@ -163,7 +167,7 @@ def run_setting(setting: Setting, seed: int, minutes: float, preset: str, run_di
         shutil.rmtree(run_dir, ignore_errors=True)  # a start that never reached its first checkpoint
         action, how = "trained", dict(preset=preset, seed=seed, minutes=minutes, **dict(setting.overrides))
     if how is not None:
-        train(setting.task, setting.algo, run_dir=run_dir, eval_every=None, eval_minutes=EVAL_MINUTES, **how)
+        train(setting.task, setting.algo, run_dir=run_dir, eval_every=None, eval_minutes=eval_minutes, **how)
     (run_dir / COMPLETE).write_text(json.dumps({"minutes": minutes}))
     return action
 
@@ -197,6 +201,7 @@ class Job:
     minutes: float
     preset: str
     run_dir: str
+    eval_minutes: float = EVAL_MINUTES
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self))
@@ -210,7 +215,7 @@ class Job:
         return cls(Setting(**setting, overrides=overrides), **values)
 
     def run(self) -> str:
-        return run_setting(self.setting, self.seed, self.minutes, self.preset, Path(self.run_dir))
+        return run_setting(self.setting, self.seed, self.minutes, self.preset, Path(self.run_dir), self.eval_minutes)
 
 
 def _tuples(value):
@@ -326,6 +331,7 @@ def run_settings(
     minutes: float,
     preset: str = "cpu",
     threshold: float | None = None,
+    eval_minutes: float = EVAL_MINUTES,
     workers: int = 1,
     backend: str = "local",
     cpus_per_run: float = 1.0,
@@ -333,13 +339,16 @@ def run_settings(
 ) -> tuple[list[Path], str]:
     """Run (or complete) every setting × seed under ``out/runs`` for ``minutes`` each, then write
     the curves and the table (time to ``threshold``, or else to each task's entry in
-    :data:`~dva.tasks.TARGET_RETURNS`) into ``out``. ``workers`` > 1 runs that many at
+    :data:`~dva.tasks.TARGET_RETURNS`) into ``out``. Each run is evaluated every ``eval_minutes`` of
+    its own clock. ``workers`` > 1 runs that many at
     once, each on its own share of the CPUs; ``backend="ray"`` runs them as Ray tasks of
     ``cpus_per_run`` CPUs and ``gpus_per_run`` GPUs. Settings come from :func:`figure_settings`
     (``dva compare``) or :func:`grid_settings` (``dva sweep``)."""
 
     if backend not in BACKENDS:
         raise DvaUsageError(f"backend {backend!r} is not allowed; use one of: {', '.join(BACKENDS)}")
+    if not eval_minutes > 0:
+        raise DvaUsageError(f"--eval-minutes {eval_minutes!r} is not allowed; use a number of minutes > 0")
     groups = cpu_groups(available_cpus(), workers) if backend == "local" else []
     labels: dict[Path, str] = {}
     thresholds: dict[str, float | None] = {}
@@ -350,7 +359,7 @@ def run_settings(
         for seed in seeds:
             run_dir = out / "runs" / f"{setting.slug}_s{seed}"
             labels[run_dir] = label
-            jobs.append(Job(setting, seed, minutes, preset, str(run_dir)))
+            jobs.append(Job(setting, seed, minutes, preset, str(run_dir), eval_minutes))
 
     def report(job: Job, action: str) -> None:
         print(f"{labels[Path(job.run_dir)]}, seed {job.seed}: {action}", flush=True)
