@@ -107,6 +107,7 @@ def summarize_runs(
         final = np.array([c[metric][-1] for c in curves])
         late = np.array([np.median(c[metric][-LATE_POINTS:]) for c in curves])
         best = np.array([c[metric].max() for c in curves])
+        late_low, late_high = bootstrap_interval(late)
         row = {
             "setting": label,
             "seeds": len(curves),
@@ -114,7 +115,8 @@ def summarize_runs(
             "final_std": sample_std(final),
             "late_mean": late.mean(),
             "late_std": sample_std(late),
-            **dict(zip(("late_low", "late_high"), bootstrap_interval(late))),
+            "late_low": late_low,
+            "late_high": late_high,
             "best_mean": best.mean(),
             "minutes": np.mean([c["wall_time"][-1] for c in curves]) / 60,
             "env_steps": np.mean([c["env_steps"][-1] for c in curves]),
