@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from fakes import small_off_policy_agent
 
+from dva.algorithms import make_config
 from dva.algorithms.augmentation import shift_images
 from dva.algorithms.replay import FrameReplay, Step, stack_at
 from dva.envs.rendering import push_frame, reset_frame_stack
@@ -206,3 +207,14 @@ def test_drqv2_privileged_adds_the_weighted_state_error_to_the_encoders_loss():
     moved = np.abs(np.asarray(jax.tree.leaves(with_state[0]["encoder"])[0] - jax.tree.leaves(plain[0]["encoder"])[0]))
     assert moved.max() > 0  # the state's error reaches the encoder
     assert np.isfinite(metrics.logged["state_prediction_loss"]) and metrics.logged["state_prediction_loss"] > 0
+
+
+def test_cpu_preset_updates_per_round_by_task():
+    """The legged robots get the update rate the Hopper sweep chose (4 per round of 16 envs, one
+    per 4 agent steps); Cart-pole and dm_control's tasks keep DrQ-v2's own one per 2 agent steps;
+    the privileged variant follows DrQ-v2."""
+    rate = lambda task, algo="drqv2": make_config(task, algo, "cpu").updates_per_iteration
+    for task in ("hopper", "cheetah", "ant", "humanoid", "quadruped"):
+        assert rate(task) == rate(task, "drqv2-privileged") == 4, task
+    assert rate("cartpole_swingup") == rate("dmc:cartpole-swingup") == 8
+    assert make_config("hopper", "drqv2", "paper").updates_per_iteration == 16
