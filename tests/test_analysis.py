@@ -9,6 +9,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from dva.analysis.bench import cpu_model
 from dva.analysis.cost import measure_costs, ratios, write_cost_report
 from dva.analysis.profile import encoder_flops, per_million_steps
 from dva.cli import main
@@ -144,3 +145,13 @@ def test_analyze_rejects_unknown_task(capsys):
     with pytest.raises(SystemExit):
         main(["analyze", "cost", "--tasks", "cartpole_swingup", "walker"])
     assert "unknown task 'walker'" in capsys.readouterr().err
+
+
+def test_cpu_model_names_the_first_processors_model_family_and_number(tmp_path):
+    cpuinfo = tmp_path / "cpuinfo"
+    first = "processor\t: 0\ncpu family\t: 26\nmodel\t\t: 2\nmodel name\t: AMD EPYC\n"
+    cpuinfo.write_text(first + "\nprocessor\t: 1\ncpu family\t: 25\nmodel\t\t: 1\nmodel name\t: other\n")
+    assert cpu_model(cpuinfo) == "AMD EPYC, family 26 model 2"
+    cpuinfo.write_text("processor\t: 0\nmodel name\t: Some CPU\n")  # no family (other architectures)
+    assert cpu_model(cpuinfo) == "Some CPU"
+    assert cpu_model(tmp_path / "absent")  # no /proc/cpuinfo: the platform's answer, or "unknown CPU"

@@ -53,8 +53,25 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return "\n".join(lines)
 
 
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name with its family and model numbers as the OS reports them (Linux's
+    /proc/cpuinfo, first processor; else ``platform``), or "unknown CPU". Machines of one kind can
+    differ in it — a model name alone can be as vague as "AMD EPYC" across generations — and their
+    wall-clock numbers with it."""
+    fields: dict[str, str] = {}
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text(errors="replace").split("\n\n")[0].splitlines():
+            key, _, value = line.partition(":")
+            fields[key.strip()] = value.strip()
+    name = fields.get("model name") or platform.processor() or "unknown CPU"
+    if "cpu family" in fields and "model" in fields:
+        return f"{name}, family {fields['cpu family']} model {fields['model']}"
+    return name
+
+
 def machine_description() -> str:
-    """One line naming the backend, device and CPU count the numbers came from."""
+    """One line naming the CPU model, CPU count, backend and device the numbers came from."""
 
     device = jax.devices()[0]
-    return f"{platform.machine()} {os.cpu_count()} cores, JAX {jax.__version__} on {device.platform} ({device.device_kind})"  # noqa: E501
+    cpu = f"{platform.machine()} {os.cpu_count()} cores ({cpu_model()})"
+    return f"{cpu}, JAX {jax.__version__} on {device.platform} ({device.device_kind})"
