@@ -9,10 +9,10 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from dva.analysis.bench import cpu_model
 from dva.analysis.cost import measure_costs, ratios, write_cost_report
 from dva.analysis.profile import encoder_flops, per_million_steps
 from dva.cli import main
+from dva.runner.runtime import cpu_model
 
 TINY = ["--num-envs", "4", "--horizon", "8", "--image-size", "24"]
 

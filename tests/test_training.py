@@ -73,6 +73,10 @@ def test_train_resume_continues_the_curve(tmp_path):
     assert [r["eval_return"] != "" for r in rows(run_dir)[6:]] == [False, True, True, True]
     times = [float(r["wall_time"]) for r in resumed]
     assert times == sorted(times)  # the clock continues across the resume
+    # Each start and resume records the machine it trained on, from its first iteration.
+    machines = (run_dir / "machines.txt").read_text().splitlines()
+    assert [line.split(":")[0] for line in machines] == ["iteration 0", "iteration 3", "iteration 5", "iteration 7"]
+    assert all("cores" in line and "JAX" in line for line in machines)
     # A restored state is committed to the device in every leaf (zero-size ones too), as a fresh
     # one is: one signature for the compiled iteration.
     spec, agent, restored = load_run(run_dir, evaluation_episodes=None)

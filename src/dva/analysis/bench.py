@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import csv
-import os
-import platform
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -12,6 +10,10 @@ from pathlib import Path
 from typing import Any
 
 import jax
+
+# The machine's one-line description lives with the process set-up (the runner records it in each
+# run's folder); the benchmarks import it from here with the rest of their helpers.
+from dva.runner.runtime import machine_description as machine_description
 
 
 def timed(fn: Callable[..., Any], *args: Any, repeats: int = 3) -> tuple[float, float, Any]:
@@ -51,27 +53,3 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
     return "\n".join(lines)
-
-
-def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The CPU's model name with its family and model numbers as the OS reports them (Linux's
-    /proc/cpuinfo, first processor; else ``platform``), or "unknown CPU". Machines of one kind can
-    differ in it — a model name alone can be as vague as "AMD EPYC" across generations — and their
-    wall-clock numbers with it."""
-    fields: dict[str, str] = {}
-    if cpuinfo.exists():
-        for line in cpuinfo.read_text(errors="replace").split("\n\n")[0].splitlines():
-            key, _, value = line.partition(":")
-            fields[key.strip()] = value.strip()
-    name = fields.get("model name") or platform.processor() or "unknown CPU"
-    if "cpu family" in fields and "model" in fields:
-        return f"{name}, family {fields['cpu family']} model {fields['model']}"
-    return name
-
-
-def machine_description() -> str:
-    """One line naming the CPU model, CPU count, backend and device the numbers came from."""
-
-    device = jax.devices()[0]
-    cpu = f"{platform.machine()} {os.cpu_count()} cores ({cpu_model()})"
-    return f"{cpu}, JAX {jax.__version__} on {device.platform} ({device.device_kind})"

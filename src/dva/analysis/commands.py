@@ -7,13 +7,13 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from dva.analysis.bench import machine_description
 from dva.analysis.breakdown import measure_iteration, write_breakdown_report
 from dva.analysis.cost import DVA_VARIANTS, measure_costs, write_cost_report
 from dva.analysis.gradients import compare_gradients, write_gradient_report
 from dva.analysis.gradnorm import gradient_norms, write_gradnorm_report
 from dva.envs.rendering import check_image_size
 from dva.errors import DvaUsageError
+from dva.runner.runtime import machine_description
 from dva.tasks import task_names
 
 

@@ -9,6 +9,7 @@ imported. The ``dva`` command, its worker processes, the benchmarks and the exam
 from __future__ import annotations
 
 import os
+import platform
 from pathlib import Path
 
 import jax
@@ -56,3 +57,27 @@ def configure() -> None:
     Call it first; calling it again changes nothing."""
     configure_xla()
     configure_caches()
+
+
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name with its family and model numbers as the OS reports them (Linux's
+    /proc/cpuinfo, first processor; else ``platform``), or "unknown CPU". Machines of one kind can
+    differ in it — a model name alone can be as vague as "AMD EPYC" across generations — and their
+    wall-clock numbers with it."""
+    fields: dict[str, str] = {}
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text(errors="replace").split("\n\n")[0].splitlines():
+            key, _, value = line.partition(":")
+            fields[key.strip()] = value.strip()
+    name = fields.get("model name") or platform.processor() or "unknown CPU"
+    if "cpu family" in fields and "model" in fields:
+        return f"{name}, family {fields['cpu family']} model {fields['model']}"
+    return name
+
+
+def machine_description() -> str:
+    """One line naming the CPU model, CPU count, backend and device the numbers came from."""
+
+    device = jax.devices()[0]
+    cpu = f"{platform.machine()} {os.cpu_count()} cores ({cpu_model()})"
+    return f"{cpu}, JAX {jax.__version__} on {device.platform} ({device.device_kind})"

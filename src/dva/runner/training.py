@@ -31,7 +31,7 @@ from dva.runner.checkpoint import (
     write_spec,
 )
 from dva.runner.compiled import abstract_state, build, committed, compiled
-from dva.runner.logs import ProgressLog, csv_fields, show_progress
+from dva.runner.logs import ProgressLog, csv_fields, record_machine, show_progress
 from dva.runner.schedule import Every, RunClock
 from dva.runner.sharding import device_mesh, place
 from dva.runner.tracking import WandbTracker
@@ -123,6 +123,7 @@ def train(
         tracker.start(run_dir, spec.to_dict())
     log = ProgressLog(run_dir, csv_fields(agent), tracker)
     state = starting_state(agent, spec, mesh, checkpoints.manager, log, resume)
+    record_machine(run_dir, int(state.iteration))
     if resume:  # the curve continues from the checkpoint: set-up and compiling are not training
         compiled(agent).iteration.lower(state).compile()
         clock.exclude(clock.seconds())
