@@ -1,5 +1,5 @@
 """Process-wide set-up, done by :func:`configure` and never on import: XLA's CPU convolutions,
-persistent compile caches.
+persistent compile caches; and the one-line description of the machine the process runs on.
 
 Call ``dva.configure()`` at the start of a script, before JAX computes anything: JAX reads
 ``XLA_FLAGS`` once, when it starts its CPU client, and Warp reads ``WARP_CACHE_PATH`` when it is
