@@ -197,3 +197,25 @@ def test_training_episode_returns_are_read_at_an_iteration(tmp_path):
     cells = {n: report.run_column(f"train at {n} it")[1](runs) for n in (1, 3, 4, 6)}
     assert cells == {1: "– / –", 3: "50 / 60", 4: "80 / 80", 6: "– / –"}
     assert report.run_column("train at 3 it")[0] == "training episodes at iteration 3"
+
+
+def test_the_machine_column_names_each_runs_cpu_from_its_kept_machines_file(tmp_path):
+    """``machine``: the CPU model of each start or resume (``NAME.machines.txt`` beside the CSV),
+    the accelerator when it is not the CPU, and how many runs ran where when they differ."""
+    for name in ("s0", "s1", "s2"):
+        (tmp_path / f"{name}.csv").write_text(CURVE)
+    zen = "x86_64 2 cores (AMD EPYC, family 26 model 2), JAX 0.10.2 on cpu (cpu)"
+    (tmp_path / "s0.machines.txt").write_text(f"iteration 0: {zen}\niteration 3: {zen}\n")
+    (tmp_path / "s1.machines.txt").write_text(
+        f"iteration 0: {zen}\niteration 2: x86_64 16 cores (Intel Xeon, family 6 model 143), JAX 0.10.2 on gpu (H100)\n"
+    )
+    runs = [report.Run.load(tmp_path / f"s{seed}.csv") for seed in range(3)]
+    column = report.run_column("machine")[1]
+    assert column(runs[:1]) == "AMD EPYC, family 26 model 2"  # a resume on the same CPU is one machine
+    assert column(runs) == (
+        "AMD EPYC, family 26 model 2 (1 of 3); AMD EPYC, family 26 model 2 then Intel Xeon, family 6 model 143 + H100 "
+        "(1 of 3); not recorded (1 of 3)"
+    )
+    (tmp_path / "s2.machines.txt").write_text("a laptop\n")
+    with pytest.raises(report.DvaUsageError, match="not a machines.txt line"):
+        report.Run.load(tmp_path / "s2.csv")

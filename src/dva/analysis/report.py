@@ -18,6 +18,8 @@ made and what to show::
 
     [runs]                                  # setting → its runs' CSV files, one per seed
     "D.Va" = ["hopper_dva_s0.csv", "hopper_dva_s1.csv"]
+                                            # (a run's machines.txt kept beside its CSV as
+                                            # hopper_dva_s0.machines.txt feeds the "machine" column)
 
     [[tables]]                              # a table of the runs: one column per statistic
     columns = ["untrained", "first 3000", "final", "median10", "best", "env steps"]
@@ -104,6 +106,8 @@ class Run:
     # The training episodes' return as logged each iteration (the latest that ended), and when.
     train_iteration: np.ndarray
     train_return: np.ndarray
+    # The machines it trained on, in order (from the machines.txt kept beside its CSV); () if none kept.
+    machines: tuple[str, ...] = ()
 
     @classmethod
     def load(cls, path: Path) -> Run:
@@ -128,6 +132,7 @@ class Run:
             logged("iteration_time"),
             np.array([int(float(r["iteration"])) for r in trained]),
             np.array([float(r["train_return"]) for r in trained]),
+            run_machines(path),
         )
 
     def first(self, threshold: float) -> int | None:
@@ -202,6 +207,36 @@ def train_at_column(iteration: int) -> Callable[[list[Run]], str]:
     return cell
 
 
+# A line of a run's machines.txt: "iteration N: ARCH C cores (CPU MODEL), JAX V on PLATFORM (DEVICE)".
+MACHINE_LINE = re.compile(r"iteration \d+: .*? cores \((?P<cpu>.*)\), JAX \S+ on (?P<platform>\w+) \((?P<device>.*)\)")
+
+
+def run_machines(path: Path) -> tuple[str, ...]:
+    """The machines a run trained on, from its ``machines.txt`` kept beside its CSV as
+    ``NAME.machines.txt``: each start's or resume's CPU model (and its accelerator, if not the CPU),
+    in order, repeats merged; () when none is kept."""
+    kept = path.with_name(f"{path.stem}.machines.txt")
+    if not kept.is_file():
+        return ()
+    machines: list[str] = []
+    for line in kept.read_text().splitlines():
+        if not (match := MACHINE_LINE.fullmatch(line.strip())):
+            raise DvaUsageError(f"{kept}: {line!r} is not a machines.txt line (iteration N: <machine>)")
+        machine = match["cpu"] if match["platform"] == "cpu" else f"{match['cpu']} + {match['device']}"
+        if not machines or machines[-1] != machine:
+            machines.append(machine)
+    return tuple(machines)
+
+
+def machine_cell(runs: list[Run]) -> str:
+    """The machines of a setting's runs: one if all ran on it, else each with its number of runs."""
+    names = [" then ".join(run.machines) or "not recorded" for run in runs]
+    distinct = list(dict.fromkeys(names))
+    if len(distinct) == 1:
+        return distinct[0]
+    return "; ".join(f"{name} ({names.count(name)} of {len(runs)})" for name in distinct)
+
+
 def max_grad_norm(runs: list[Run]) -> str:
     """The largest logged actor gradient norm of each run: only where every iteration was logged."""
     for run in runs:
@@ -234,6 +269,7 @@ FIXED_COLUMNS: dict[str, tuple[str, Callable[[list[Run]], str]]] = {
         lambda runs: per_seed([f"{r.wall_time[-1] / max(r.iterations, 1):.2f}" for r in runs]),
     ),
     "grad norm": ("largest pre-clip actor gradient norm", max_grad_norm),
+    "machine": ("machine", machine_cell),
     "iteration time": (
         "median s / iteration",
         lambda runs: per_seed([f"{np.median(r.iteration_times):.2f}" for r in runs]),
