@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from dva.analysis import report
+from dva.runner import runtime
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -216,6 +217,9 @@ def test_the_machine_column_names_each_runs_cpu_from_its_kept_machines_file(tmp_
         "AMD EPYC, family 26 model 2 (1 of 3); AMD EPYC, family 26 model 2 then Intel Xeon, family 6 model 143 + H100 "
         "(1 of 3); not recorded (1 of 3)"
     )
+    # The line the runner writes (this machine's) reads back as this machine's CPU model.
+    (tmp_path / "s2.machines.txt").write_text(f"iteration 0: {runtime.machine_description()}\n")
+    assert report.Run.load(tmp_path / "s2.csv").machines == (runtime.cpu_model(),)
     (tmp_path / "s2.machines.txt").write_text("a laptop\n")
     with pytest.raises(report.DvaUsageError, match="not a machines.txt line"):
         report.Run.load(tmp_path / "s2.csv")
