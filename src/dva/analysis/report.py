@@ -61,6 +61,7 @@ from dva.analysis.bench import markdown_table
 from dva.analysis.plots import LATE_POINTS, PublishedCurve, plot_curves
 from dva.analysis.statistics import bootstrap_interval, sample_std
 from dva.errors import DvaUsageError
+from dva.runner.runtime import machine_in_line
 
 RESULTS = Path("docs/results")
 DOCUMENTS = ("docs/results.md", "README.md", "docs/index.md")
@@ -207,10 +208,6 @@ def train_at_column(iteration: int) -> Callable[[list[Run]], str]:
     return cell
 
 
-# A line of a run's machines.txt: "iteration N: ARCH C cores (CPU MODEL), JAX V on PLATFORM (DEVICE)".
-MACHINE_LINE = re.compile(r"iteration \d+: .*? cores \((?P<cpu>.*)\), JAX \S+ on (?P<platform>\w+) \((?P<device>.*)\)")
-
-
 def run_machines(path: Path) -> tuple[str, ...]:
     """The machines a run trained on, from its ``machines.txt`` kept beside its CSV as
     ``NAME.machines.txt``: each start's or resume's CPU model (and its accelerator, if not the CPU),
@@ -220,9 +217,8 @@ def run_machines(path: Path) -> tuple[str, ...]:
         return ()
     machines: list[str] = []
     for line in kept.read_text().splitlines():
-        if not (match := MACHINE_LINE.fullmatch(line.strip())):
+        if (machine := machine_in_line(line)) is None:
             raise DvaUsageError(f"{kept}: {line!r} is not a machines.txt line (iteration N: <machine>)")
-        machine = match["cpu"] if match["platform"] == "cpu" else f"{match['cpu']} + {match['device']}"
         if not machines or machines[-1] != machine:
             machines.append(machine)
     return tuple(machines)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 from pathlib import Path
 
 import jax
@@ -81,3 +82,16 @@ def machine_description() -> str:
     device = jax.devices()[0]
     cpu = f"{platform.machine()} {os.cpu_count()} cores ({cpu_model()})"
     return f"{cpu}, JAX {jax.__version__} on {device.platform} ({device.device_kind})"
+
+
+# A line of a run's machines.txt: "iteration N: " and the machine_description() of the process that
+# trained it from iteration N on (written by runner.logs.record_machine).
+MACHINE_LINE = re.compile(r"iteration \d+: .*? cores \((?P<cpu>.*)\), JAX \S+ on (?P<platform>\w+) \((?P<device>.*)\)")
+
+
+def machine_in_line(line: str) -> str | None:
+    """The machine a machines.txt line names: its CPU model, and its accelerator when the run did
+    not run on the CPU; None if ``line`` is not such a line."""
+    if not (match := MACHINE_LINE.fullmatch(line.strip())):
+        return None
+    return match["cpu"] if match["platform"] == "cpu" else f"{match['cpu']} + {match['device']}"
