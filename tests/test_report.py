@@ -58,6 +58,7 @@ def test_run_statistics_are_the_hand_computed_ones(tmp_path):
     # At iteration 3 neither evaluated: the next evaluation, iteration 4's, counts. Resampling the
     # two medians gives means 300, 400, 500 with chances ¼, ½, ¼: the 95 % interval is [300, 500].
     assert "| 1k / 1k | 9 / 9 | 500 / 300 | [300, 500] |" in text
+    assert report.interval([500.0]) == "–"  # one seed has no interval
     assert "| toy | final 400 ± 141†, 2× at 1.0 / 1.0† min |" in text  # a stale section's values are marked
     assert "old" not in text
 

@@ -163,7 +163,10 @@ def spread(values: list[float]) -> str:
 
 
 def interval(values: list[float]) -> str:
-    """The bootstrap 95 % interval of the mean over seeds, as "[low, high]"."""
+    """The bootstrap 95 % interval of the mean over seeds, as "[low, high]"; "–" for one seed,
+    whose resamples are all that seed (an interval of zero width says nothing about the spread)."""
+    if len(values) < 2:
+        return "–"
     low, high = bootstrap_interval(values)
     return f"[{whole(low)}, {whole(high)}]"
 
