@@ -219,7 +219,7 @@ def test_the_machine_column_names_each_runs_cpu_from_its_kept_machines_file(tmp_
         "(1 of 3); not recorded (1 of 3)"
     )
     # The line the runner writes (this machine's) reads back as this machine's CPU model.
-    (tmp_path / "s2.machines.txt").write_text(f"iteration 0: {runtime.machine_description()}\n")
+    (tmp_path / "s2.machines.txt").write_text(runtime.machine_line(0) + "\n")
     assert report.Run.load(tmp_path / "s2.csv").machines == (runtime.cpu_model(),)
     (tmp_path / "s2.machines.txt").write_text("a laptop\n")
     with pytest.raises(report.DvaUsageError, match="not a machines.txt line"):

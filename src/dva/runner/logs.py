@@ -12,7 +12,7 @@ from tensorboardX import SummaryWriter
 from tqdm import tqdm
 
 from dva.algorithms.base import Agent
-from dva.runner.runtime import machine_description
+from dva.runner.runtime import machine_line
 from dva.runner.tracking import WandbTracker
 
 MACHINES = "machines.txt"  # one line per start or resume of a run: its first iteration and the machine
@@ -22,7 +22,7 @@ def record_machine(run_dir: Path, iteration: int) -> None:
     """Append to the run's ``machines.txt`` the machine that trains it from ``iteration`` on: a
     run's wall-clock numbers depend on the CPU, and a resumed run may continue on another."""
     with open(Path(run_dir) / MACHINES, "a") as file:
-        file.write(f"iteration {iteration}: {machine_description()}\n")
+        file.write(machine_line(iteration) + "\n")
 
 
 def read_progress(run_dir) -> list[dict]:

@@ -84,8 +84,12 @@ def machine_description() -> str:
     return f"{cpu}, JAX {jax.__version__} on {device.platform} ({device.device_kind})"
 
 
-# A line of a run's machines.txt: "iteration N: " and the machine_description() of the process that
-# trained it from iteration N on (written by runner.logs.record_machine).
+def machine_line(iteration: int) -> str:
+    """A line of a run's machines.txt: the machine that trains it from ``iteration`` on."""
+    return f"iteration {iteration}: {machine_description()}"
+
+
+# What machine_line writes, read back by machine_in_line.
 MACHINE_LINE = re.compile(r"iteration \d+: .*? cores \((?P<cpu>.*)\), JAX \S+ on (?P<platform>\w+) \((?P<device>.*)\)")
 
 
