@@ -261,8 +261,10 @@ def test_plot_summary_reports_final_late_best_and_time_to_threshold(tmp_path, mo
     assert float(dva["minutes_to_threshold"]) == 2.5  # median of 1 and 4 minutes
     assert float(dva["env_steps_to_threshold"]) == 2000.0
     assert curl["reached"] == "0" and curl["minutes_to_threshold"] == "nan"
+    assert "| dva on cartpole_balance (cpu preset) | 2 | 2100 ± 141 | 1450 ± 778 | [900, 2000] | 2350 |" in markdown
+    # One seed: its values alone, and no interval (all its resamples are that seed).
     assert (
-        "| curl on cartpole_balance (cpu preset) | 1 | 300 ± 0 | 175 ± 0 | [175, 175] | 300 | 10.0 | 500 "
+        "| curl on cartpole_balance (cpu preset) | 1 | 300 | 175 | – | 300 | 10.0 | 500 "
         "| 2092 | 0 / 1 | nan | nan |" in markdown
     )
     assert markdown.endswith("Highest median of the last 3 (mean over seeds): dva on cartpole_balance (cpu preset)\n")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: no global state, no display needed
 
-from dva.analysis.statistics import bootstrap_interval, sample_std
+from dva.analysis.statistics import bootstrap_interval, interval_text, mean_and_std_text, sample_std
 from dva.errors import DvaUsageError
 
 METRICS = ("eval_return", "train_return")
@@ -154,9 +154,9 @@ def summary_markdown(rows: list[dict], metric: str) -> str:
         cells = [
             row["setting"],
             str(row["seeds"]),
-            f"{row['final_mean']:.0f} ± {row['final_std']:.0f}",
-            f"{row['late_mean']:.0f} ± {row['late_std']:.0f}",
-            f"[{row['late_low']:.0f}, {row['late_high']:.0f}]",
+            mean_and_std_text(row["final_mean"], row["final_std"], row["seeds"]),
+            mean_and_std_text(row["late_mean"], row["late_std"], row["seeds"]),
+            interval_text(row["late_low"], row["late_high"], row["seeds"]),
             f"{row['best_mean']:.0f}",
             f"{row['minutes']:.1f}",
             f"{row['env_steps']:.0f}",

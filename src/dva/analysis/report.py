@@ -59,7 +59,7 @@ import numpy as np
 from dva.algorithms import make_config
 from dva.analysis.bench import markdown_table
 from dva.analysis.plots import LATE_POINTS, PublishedCurve, plot_curves
-from dva.analysis.statistics import bootstrap_interval, sample_std
+from dva.analysis.statistics import bootstrap_interval, interval_text, mean_and_std_text, sample_std, whole
 from dva.errors import DvaUsageError
 from dva.runner.runtime import machine_in_line
 
@@ -147,11 +147,6 @@ class Run:
         return float(self.eval_return[index[0]]) if len(index) else None
 
 
-def whole(value: float) -> str:
-    """A return rounded to a whole number ("-0" shown as "0")."""
-    return "0" if round(value) == 0 else f"{value:.0f}"
-
-
 def steps(value: float) -> str:
     """Env steps as 83k, 1.33M."""
     return f"{value / 1e6:.2f}M" if value >= 1e6 else f"{value / 1e3:.0f}k"
@@ -159,16 +154,12 @@ def steps(value: float) -> str:
 
 def spread(values: list[float]) -> str:
     """One seed's value, or the mean ± the sample std over seeds."""
-    return whole(values[0]) if len(values) == 1 else f"{whole(float(np.mean(values)))} ± {sample_std(values):.0f}"
+    return mean_and_std_text(float(np.mean(values)), sample_std(values), len(values))
 
 
 def interval(values: list[float]) -> str:
-    """The bootstrap 95 % interval of the mean over seeds, as "[low, high]"; "–" for one seed,
-    whose resamples are all that seed (an interval of zero width says nothing about the spread)."""
-    if len(values) < 2:
-        return "–"
-    low, high = bootstrap_interval(values)
-    return f"[{whole(low)}, {whole(high)}]"
+    """The bootstrap 95 % interval of the mean over seeds, as "[low, high]"; "–" for one seed."""
+    return interval_text(*bootstrap_interval(values), len(values))
 
 
 def per_seed(values: list[str]) -> str:
