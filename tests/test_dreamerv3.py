@@ -81,7 +81,11 @@ def test_train_ratio_sets_steps_and_updates_per_iteration():
     cpu = make_config("cartpole_balance", "dreamerv3", "cpu")
     # 8 × 32 per update at ratio 16 over 4 envs: one update per 4 steps.
     assert (cpu.collect_steps, cpu.updates) == (4, 1)
-    for config in (paper, cpu):
+    legged = make_config("hopper", "dreamerv3", "cpu")
+    # The legged robots' ratio 256, the Hopper sweep's best: four updates per step of the 4 envs.
+    assert (legged.train_ratio, legged.collect_steps, legged.updates) == (256.0, 1, 4)
+    assert make_config("hopper", "dreamerv3-state", "cpu").train_ratio == 16.0  # the state agent keeps its own
+    for config in (paper, cpu, legged):
         replayed = config.updates * config.batch_size * config.batch_length
         assert replayed / (config.num_envs * config.collect_steps) == config.train_ratio
 
