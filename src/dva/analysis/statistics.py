@@ -38,7 +38,7 @@ def whole(value: float) -> str:
 
 
 def mean_and_std_text(mean: float, std: float, seeds: int) -> str:
-    """ "mean ± sample std" over seeds in whole numbers; the value alone for one seed."""
+    """The mean ± the sample std over seeds in whole numbers; the value alone for one seed."""
     return whole(mean) if seeds == 1 else f"{whole(mean)} ± {std:.0f}"
 
 
