@@ -95,6 +95,9 @@ def test_a_setting_measured_apart_is_stale_on_its_own(tmp_path):
     (root.root / "src" / "task.py").write_text("reward = 2\n")  # the code both measure changed
     text = report.generate(root, "docs/results.md")
     assert "**Stale**:" in text and "| toy | final 400 ± 141†" in text
+    toml.write_text(toml.read_text() + '\n[settings."DrQ"]\ncommit = "fedcba9"\nconfigs = []\nfingerprint = ""\n')
+    # Every row stamped apart: the section's own commit measures none of them and is not shown.
+    assert "code D.Va: `89abcde`; DrQ: `fedcba9`;" in report.generate(root, "docs/results.md")
 
 
 def test_write_then_check_agree(tmp_path):

@@ -385,8 +385,11 @@ class Section:
         """The generated part of the section: how it was made, stale or not, and its tables."""
         meta = self.meta
         apart = meta.get("settings", {})
+        # Where every row was stamped apart, the section's own commit measures none of them.
+        every_setting_apart = bool(apart) and set(meta.get("runs", {})) <= set(apart)
         code = "; ".join(
-            [commit_text(meta["commit"])] + [f"{name}: {commit_text(stamp['commit'])}" for name, stamp in apart.items()]
+            [commit_text(meta["commit"])] * (not every_setting_apart)
+            + [f"{name}: {commit_text(stamp['commit'])}" for name, stamp in apart.items()]
         )
         lines = [
             f"Command: `{meta['command']}`  ",
