@@ -6,6 +6,7 @@ target-Q average). Learning Cart-pole is measured in docs/results.md."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -335,6 +336,21 @@ def test_evaluation_carries_the_plan_and_the_first_step_plans_afresh(tdmpc2_run)
     # the next step starts from the plan, shifted: a different start, a different plan
     _, next_plan = act(policy, observation, plan, key)
     assert np.abs(np.asarray(next_plan - plan)).max() > 1e-5
+
+
+def test_the_cpu_preset_updates_twice_per_agent_step_on_the_legged_robots_pixels():
+    """The Hopper sweep's best rate is the legged robots' on pixels; Cart-pole, the state agent and
+    the paper preset keep the reference's one update per agent step of each env."""
+    legged = make_config("hopper", "tdmpc2", "cpu")
+    assert legged.updates_per_iteration / legged.num_envs == 2
+    for config in (
+        make_config("cartpole_balance", "tdmpc2", "cpu"),
+        make_config("hopper", "tdmpc2-state", "cpu"),
+        make_config("hopper", "tdmpc2", "paper"),
+    ):
+        assert config.updates_per_iteration / config.num_envs == 1
+    at_one_per_step = make_config("hopper", "tdmpc2", "cpu", updates_per_iteration=4)
+    assert dataclasses.replace(legged, updates_per_iteration=4) == at_one_per_step  # the only difference
 
 
 def test_bad_tdmpc2_settings_name_the_value():

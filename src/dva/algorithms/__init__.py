@@ -207,7 +207,7 @@ ALGORITHMS: dict[str, Algorithm] = {
         "TD-MPC2 on the state: the same agent with an MLP encoder of the state vector",
         TDMPC2Config,
         TDMPC2,
-        tdmpc2_preset,
+        lambda task, preset: tdmpc2_preset(task, preset, "state"),
         dict(observation="state"),
         _pixels_or_state,
         divergence_hint=TDMPC2_HINT,
