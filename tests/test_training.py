@@ -197,6 +197,17 @@ def test_cpu_preset_gives_pixel_actors_a_longer_decay():
     assert make_config("hopper", "dva", "cpu", lr_decay_iterations=50).lr_decay_iterations == 50
 
 
+def test_the_cheetahs_cpu_preset_on_pixels_is_the_papers_batch_at_48_pixels():
+    """The Cheetah's pixel actors keep the paper's 64 envs × 32 steps (and its decay) at the CPU
+    preset's image size; its state actor keeps the CPU preset's batch."""
+    for algo in ("dva", "dva-privileged"):
+        assert make_config("cheetah", algo, "cpu") == dataclasses.replace(
+            make_config("cheetah", algo, "paper"), image_size=48
+        )
+    state = make_config("cheetah", "shac", "cpu")
+    assert (state.num_envs, state.horizon) == (16, 16)
+
+
 def test_dva_is_the_papers_method_and_the_privileged_variants_add_the_state_prediction_loss():
     """dva never has the state-prediction loss (under any preset, and no flag turns it on);
     dva-privileged and drqv2-privileged have it at the same weight on every task and preset, and
