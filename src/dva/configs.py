@@ -96,8 +96,8 @@ SHAC_CPU_PIXEL_TASKS: dict[str, dict] = {
     **{task: dict(lr_decay_iterations=7000) for task in LEGGED_TASKS},
     "humanoid": dict(lr_decay_iterations=14000),
     # The Cheetah from pixels keeps the paper's batch (64 envs × 32 steps, its decay), only at 48²:
-    # at 16 × 16 it flips onto its back and stays there; at the paper's batch it runs within two CPU
-    # hours (docs/results.md#cheetah-dva-from-pixels).
+    # at 16 × 16 `dva-privileged` flipped onto its back and stayed there; at the paper's batch `dva`
+    # runs within two CPU hours (docs/results.md#cheetah-dva-from-pixels).
     "cheetah": dict(num_envs=64, horizon=32, lr_decay_iterations=SHAC_PAPER["cheetah"]["lr_decay_iterations"]),
     **{task: dict(lr_decay_iterations=4500) for task in ("cartpole_swingup", "cartpole_balance")},
 }
