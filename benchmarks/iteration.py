@@ -8,7 +8,8 @@ critic / rendering), plus the pixel encoder's analytic compute bound.
 Prints a markdown table; ``--csv`` also appends the parts' seconds as one row of FILE (several
 tasks, algorithms or code versions measured into one table). The encoder bound is its arithmetic
 (forward + backward over all h × N frames) divided by the float32 matmul rate this process
-reaches on the cores it may use (``taskset`` decides: pin it to one core for a one-core bound).
+reaches on the cores it may use, on the CPU the better of XLA's dot and NumPy's BLAS (``taskset``
+decides: pin it to one core for a one-core bound).
 For pixel actors it also times the reference measurement — the encoder + trunk's forward and
 parameter gradient over 512 images of 84² × 9 — and, given ``--pytorch`` (an interpreter with
 PyTorch), the same work in PyTorch on the same cores (``benchmarks/pytorch_encoder.py``), for the
@@ -143,12 +144,13 @@ def main() -> None:
 def encoder_report(config, times: dict[str, float], pytorch: str | None) -> dict[str, float | str]:
     """Prints the actor backward against the encoder's matmul bound, and the reference measurement
     (with PyTorch's where ``pytorch`` names an interpreter); returns those numbers."""
-    from dva.analysis.profile import encoder_flops, matmul_flops_per_s
+    from dva.analysis.profile import encoder_flops, matmul_rates
 
     images = config.num_envs * config.horizon
     channels = 3 * config.frame_stack
     flops = encoder_flops(config.image_size, channels, trunk=config.trunk)
-    rate = max(matmul_flops_per_s() for _ in range(5))
+    xla_rate, blas_rate = matmul_rates()
+    rate = max(xla_rate, blas_rate)
     # Chunks recompute the encoder's forward; the kept backward passes (chunk 0) do not.
     recomputed = config.actor_backward_chunk > 0
     bound = images * (flops["forward"] * recomputed + flops["backward"]) / rate
@@ -156,14 +158,16 @@ def encoder_report(config, times: dict[str, float], pytorch: str | None) -> dict
     render_ms_per_frame = 1e3 * times["render"] / images
     print(
         f"\nencoder: {flops['forward'] / 1e6:.1f} MFLOP forward + {flops['backward'] / 1e6:.1f} MFLOP backward "
-        f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s on {usable_cores()} core(s) → bound {bound:.3f} s for "
+        f"per image; matmul rate {rate / 1e9:.0f} GFLOP/s (XLA {xla_rate / 1e9:.0f}, BLAS {blas_rate / 1e9:.0f}) "
+        f"on {usable_cores()} core(s) → bound {bound:.3f} s for "
         f"{images} images ({passes}); measured actor backward {times['actor_backward']:.3f} s = "
         f"{times['actor_backward'] / bound:.2f}× the bound; rendering {render_ms_per_frame:.2f} ms per frame"
     )
     ours = encoder_gradient_seconds(**REFERENCE)
     at_size = encoder_gradient_seconds(images, config.image_size, channels)
     numbers: dict[str, float | str] = {
-        "matmul_gflops": rate / 1e9,
+        "matmul_gflops": xla_rate / 1e9,
+        "blas_gflops": blas_rate / 1e9,
         "bound_s": bound,
         "bound_ratio": times["actor_backward"] / bound,
         "render_ms_per_frame": render_ms_per_frame,

@@ -110,10 +110,35 @@ def encoder_flops(image_size: int, channels_in: int, channels: int = 32, trunk: 
 
 
 def matmul_flops_per_s(size: int = 2048) -> float:
-    """The float32 matrix-multiply rate this device reaches: a practical compute bound."""
+    """The float32 matrix-multiply rate XLA's own dot reaches on this device."""
     a = jax.random.normal(jax.random.PRNGKey(0), (size, size))
     _, seconds, _ = timed(jax.jit(lambda a: a @ a), a)
     return 2.0 * size**3 / seconds
+
+
+def blas_flops_per_s(size: int = 2048, repeats: int = 5) -> float:
+    """The float32 matrix-multiply rate NumPy's BLAS reaches on the cores this process may use
+    (best of ``repeats``). On the CPU the compute bound takes the better of this and
+    :func:`matmul_flops_per_s`: XLA's dot can be far from what the core can do (41 against 96
+    GFLOP/s on one Zen 3 core)."""
+    import time
+
+    import numpy as np
+
+    a = np.random.default_rng(0).standard_normal((size, size), dtype=np.float32)
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ a
+        best = min(best, time.perf_counter() - start)
+    return 2.0 * size**3 / best
+
+
+def matmul_rates(repeats: int = 5) -> tuple[float, float]:
+    """(XLA's dot, NumPy's BLAS) float32 matmul rates, each the best of ``repeats``; BLAS is 0
+    off the CPU. The compute bound divides by the larger."""
+    xla = max(matmul_flops_per_s() for _ in range(repeats))
+    return xla, blas_flops_per_s(repeats=repeats) if jax.default_backend() == "cpu" else 0.0
 
 
 def per_million_steps(times: dict[str, float], num_envs: int, horizon: int) -> dict[str, float]:
