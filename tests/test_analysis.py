@@ -9,6 +9,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from dva.analysis import profile
 from dva.analysis.cost import measure_costs, ratios, write_cost_report
 from dva.analysis.profile import encoder_flops, per_million_steps
 from dva.cli import main
@@ -56,6 +57,24 @@ def test_encoder_flops_count_the_drqv2_encoder_by_hand():
     assert flops["forward"] == sum(conv) + projection == 24_035_392
     # weight gradients of every layer, input gradients of all but the first (pixels need none)
     assert flops["backward"] == sum(conv) + sum(conv[1:]) + 2 * projection == 45_328_448
+
+
+def test_blas_rate_is_a_matmuls_flops_over_its_fastest_repeat(monkeypatch):
+    """A clock that makes the three repeats last 4, 2 and 3 s: the rate is 2 · size³ over the 2 s."""
+    ticks = iter([0.0, 4.0, 10.0, 12.0, 20.0, 23.0])
+    monkeypatch.setattr("time.perf_counter", lambda: next(ticks))
+    assert profile.blas_flops_per_s(size=8, repeats=3) == 2 * 8**3 / 2.0
+
+
+def test_matmul_rates_keep_xlas_best_repeat_beside_the_blas(monkeypatch):
+    """The bound's two rates: the best of XLA's repeats, and the BLAS's on the CPU; off it, no BLAS."""
+    xla = iter([3e9, 5e9, 4e9, 3e9, 5e9, 4e9])
+    monkeypatch.setattr(profile.jax, "default_backend", lambda: "cpu")
+    monkeypatch.setattr(profile, "matmul_flops_per_s", lambda: next(xla))
+    monkeypatch.setattr(profile, "blas_flops_per_s", lambda repeats: 7e9 + repeats)
+    assert profile.matmul_rates(repeats=3) == (5e9, 7e9 + 3)
+    monkeypatch.setattr(profile.jax, "default_backend", lambda: "gpu")
+    assert profile.matmul_rates(repeats=3) == (5e9, 0.0)
 
 
 def test_cost_ratios_divide_visual_shac_by_dva():
