@@ -17,18 +17,7 @@ one-core comparison.
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
-
-
-def best_seconds(fn, repeats: int = 10) -> float:
-    """Best wall-clock seconds of ``fn()`` over ``repeats`` calls."""
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def geom_triangles(model, data):
@@ -86,15 +75,14 @@ def measure(task_name: str, size: int, frames: int) -> dict:
         from embreex.mesh_construction import TriangleMesh
     except ImportError:
         raise SystemExit("this benchmark needs Embree's Python bindings: pip install embreex") from None
+    from dva.analysis.bench import timed
     from dva.envs.rendering import PixelRenderer
     from dva.tasks import make_task
 
     task = make_task(task_name)
     model = task.mj_model
     qpos = jnp.tile(jnp.asarray(model.qpos0, jnp.float32), (frames, 1))
-    render = jax.jit(PixelRenderer(task, frames, size))
-    jax.block_until_ready(render(qpos))
-    warp_s = best_seconds(lambda: jax.block_until_ready(render(qpos)))
+    warp_s = timed(jax.jit(PixelRenderer(task, frames, size)), qpos, repeats=10)[1]
 
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
@@ -110,9 +98,8 @@ def measure(task_name: str, size: int, frames: int) -> dict:
         return scene
 
     scene = build()
-    hits = scene.run(origins, directions, output=1)["geomID"] >= 0
-    trace_s = best_seconds(lambda: scene.run(origins, directions, output=1))
-    build_s = best_seconds(build)
+    _, trace_s, hits = timed(lambda: scene.run(origins, directions, output=1), repeats=10)
+    build_s = timed(build, repeats=10)[1]
     rays = frames * size * size
     return dict(
         setting=f"{task_name} {size}",
@@ -120,7 +107,7 @@ def measure(task_name: str, size: int, frames: int) -> dict:
         image_size=size,
         frames=frames,
         triangles=len(triangles),
-        hit_share=float(hits.mean()),
+        hit_share=float((hits["geomID"] >= 0).mean()),
         warp_ms_per_frame=1e3 * warp_s / frames,
         warp_mrays_per_s=rays / warp_s / 1e6,
         embree_trace_ms_per_frame=1e3 * trace_s / frames,
