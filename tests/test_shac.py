@@ -145,7 +145,9 @@ def test_state_gradient_clipping_in_the_rollout(setup, decoupled):
     exact_loss, _, _, exact = decoupled  # state_grad_clip None: exact
     loose_loss, loose = action_grad(1e9)
     tight_loss, tight = action_grad(1e-6)
-    assert float(loose_loss) == float(exact_loss) == float(tight_loss)
+    # the same forward, compiled three times: equal up to how XLA fused each program
+    for loss in (loose_loss, tight_loss):
+        assert float(loss) == pytest.approx(float(exact_loss), rel=1e-6)
     np.testing.assert_allclose(loose, exact, rtol=1e-6)
     # The last action's gradient reaches no later state; earlier ones keep only their own step's
     # reward (the path through the next states is cut).
